@@ -1,0 +1,68 @@
+"""The computing part of agent i: assumed trajectories -> coupling feed-forward -> QP_i.
+
+Pure: no bus, no clock other than the solver's own timing.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from dmpc.agents.local_qp import LocalQP, QPSolution
+from dmpc.design import Design
+from dmpc.system import CoupledSystem
+from dmpc.trajectories import Plan, assumed_trajectory, coupling_feedforward
+
+
+class AgentController:
+    """Builds and solves QP_i for subsystem ``index`` of ``system``.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    design : Design
+    index : int
+        0-based subsystem index.
+    coupling : {"feedforward", "nominal"}
+        ``nominal`` drops the neighbours' terms from the prediction (the paper's model (5)).
+    solver_settings : dict, optional
+    """
+
+    def __init__(self, system: CoupledSystem, design: Design, index: int, coupling: str = "feedforward",
+                 solver_settings: dict | None = None) -> None:
+        self.index = index
+        self.system = system
+        sub = system.subsystems[index]
+        self.N = design.horizon
+        self.n = sub.n
+        self.neighbours = tuple(j for j in system.neighbours[index] if j != index)
+        self.use_feedforward = coupling == "feedforward"
+        K = design.gains.K
+        self._gamma = {j: system.subsystems[j].A + system.subsystems[j].B @ K[j] for j in self.neighbours}
+        self._K = {j: K[j] for j in self.neighbours}
+        self._A = [system.coupling(index, j)[0] for j in self.neighbours]
+        self._B = [system.coupling(index, j)[1] for j in self.neighbours]
+        self.qp = LocalQP(sub, design.gains.P[index], design.horizon, design.tightening[index], solver_settings)
+
+    def feedforward(self, k: int, states: dict[int, np.ndarray], plans: dict[int, Plan | None]) -> np.ndarray:
+        """c_i(t) for t = 0..N-1 from the neighbours' assumed trajectories, shape (N, n_i)."""
+        if not self.use_feedforward or not self.neighbours:
+            return np.zeros((self.N, self.n))
+        assumed = [assumed_trajectory(plans.get(j), k, states[j], self.N, self._gamma[j], self._K[j])
+                   for j in self.neighbours]
+        return coupling_feedforward(self._A, self._B, assumed, self.N, self.n)
+
+    def solve(self, k: int, states: dict[int, np.ndarray], alpha: np.ndarray, beta: float,
+              plans: dict[int, Plan | None]) -> QPSolution:
+        """Solve QP_i at step k.
+
+        Parameters
+        ----------
+        k : int
+        states : dict j -> ndarray (n_j,)
+            Measured states of i and its neighbours.
+        alpha : ndarray, shape (n_i,)
+        beta : float
+        plans : dict j -> Plan or None
+            The neighbours' plans to build the assumed trajectories from (None: K-rollout).
+        """
+        c = self.feedforward(k, states, plans)
+        return self.qp.solve(states[self.index], c, alpha, beta)

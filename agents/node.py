@@ -1,0 +1,205 @@
+"""Agent i on a bus: receives releases and neighbours' plans, solves, publishes its plan.
+
+The same class runs in the in-process simulation (in-memory bus) and in an agent process
+(Zenoh bus). Everything that arrives is decoded and checked; anything invalid is dropped and
+counted per sender, never raised out of a handler.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from collections import OrderedDict
+
+import numpy as np
+
+from dmpc.agents.controller import AgentController
+from dmpc.bus import keys
+from dmpc.bus.codec import DecodeError, decode, encode
+from dmpc.bus.interface import Bus, Timer
+from dmpc.bus.messages import PLANT, PlanMessage, Ready, Release, Stop
+from dmpc.trajectories import Plan
+
+log = logging.getLogger("dmpc.agent")
+KEEP_PLANS = 8
+
+
+class AgentNode:
+    """One agent's protocol logic.
+
+    Parameters
+    ----------
+    bus : Bus
+    controller : AgentController
+    names : list of str
+        Subsystem names in index order.
+    run_id : str
+    design_digest : str
+        Sent in ``Ready`` so the plant can check both sides use the same design.
+    plan_wait : float or None
+        How long to wait for a neighbour's referenced plan before using the newest older one;
+        None waits as long as it takes (lockstep without losses).
+    """
+
+    def __init__(self, bus: Bus, controller: AgentController, names: list[str], run_id: str,
+                 design_digest: str, plan_wait: float | None = None) -> None:
+        self.bus = bus
+        self.controller = controller
+        self.names = names
+        self.run_id = run_id
+        self.design_digest = design_digest
+        self.plan_wait = plan_wait
+        i = controller.index
+        self.name = names[i]
+        self.system = controller.system
+        self.neighbour_names = {names[j]: j for j in controller.neighbours}
+        self.group = {names[j]: j for j in self.system.neighbours[i]}
+        self.plans: dict[str, OrderedDict] = {name: OrderedDict() for name in self.neighbour_names}
+        self.pending: Release | None = None
+        self._wait_timer: Timer | None = None
+        self._last_done: tuple[int, int] = (-1, -1)
+        self.stopped = False
+        self.stop_reason = ""
+        self.rejected: dict[str, int] = {}
+        self.solves = 0
+        self.stale_assumptions = 0
+        bus.subscribe(keys.release(run_id, self.name), self._on_release)
+        for name in self.neighbour_names:
+            bus.subscribe(keys.plan(run_id, name), self._on_plan)
+        bus.subscribe(keys.control(run_id), self._on_control)
+
+    def announce(self) -> None:
+        """Declare liveliness and tell the plant this agent is ready."""
+        self.bus.declare_alive(keys.alive(self.run_id, keys.agent_role(self.name)))
+        msg = Ready(run=self.run_id, sender=self.name, design_digest=self.design_digest, pid=os.getpid())
+        self.bus.publish(keys.ready(self.run_id, self.name), encode(msg))
+
+    # ------------------------------------------------------------------ receive
+    def _reject(self, sender: str, why: str) -> None:
+        count = self.rejected.get(sender, 0) + 1
+        self.rejected[sender] = count
+        if count == 1 or count % 1000 == 0:
+            log.warning("agent %s: dropped message from %s (%s); %d dropped so far", self.name, sender, why, count)
+
+    def _decode(self, key: str, payload: bytes, expected: type):
+        sender = keys.last_chunk(key) if expected is PlanMessage else PLANT
+        try:
+            msg = decode(payload)
+        except DecodeError as exc:
+            self._reject(sender, str(exc))
+            return None
+        if not isinstance(msg, expected):
+            self._reject(sender, f"unexpected {type(msg).__name__} on {key}")
+            return None
+        if msg.run != self.run_id:
+            self._reject(sender, "wrong run id")
+            return None
+        return msg
+
+    def _on_control(self, key: str, payload: bytes) -> None:
+        msg = self._decode(key, payload, Stop)
+        if msg is not None and msg.sender == PLANT:
+            self.stopped = True
+            self.stop_reason = msg.reason
+
+    def _on_release(self, key: str, payload: bytes) -> None:
+        msg = self._decode(key, payload, Release)
+        if msg is None:
+            return
+        problem = self._check_release(msg)
+        if problem:
+            self._reject(PLANT, problem)
+            return
+        if (msg.k, msg.iteration) <= self._last_done:
+            return  # duplicate or stale
+        self.pending = msg
+        self._cancel_wait()
+        self._try_solve()
+
+    def _check_release(self, msg: Release) -> str | None:
+        if msg.target != self.name or msg.sender != PLANT:
+            return "release for another agent"
+        if set(msg.states) != set(self.group):
+            return "release states do not match the neighbourhood"
+        for name, j in self.group.items():
+            if msg.states[name].shape != (self.system.subsystems[j].n,):
+                return f"state of {name} has the wrong shape"
+        if msg.alpha.shape != (self.controller.n,):
+            return "alpha has the wrong shape"
+        if set(msg.assumed) != set(self.neighbour_names):
+            return "assumed plans do not match the neighbours"
+        return None
+
+    def _on_plan(self, key: str, payload: bytes) -> None:
+        msg = self._decode(key, payload, PlanMessage)
+        if msg is None:
+            return
+        name = keys.last_chunk(key)
+        j = self.neighbour_names.get(name)
+        sub = self.system.subsystems[j] if j is not None else None
+        if j is None or msg.sender != name:
+            self._reject(name, "sender does not match its key")
+            return
+        if msg.z.shape != (self.controller.N + 1, sub.n) or msg.v.shape != (self.controller.N, sub.m):
+            self._reject(name, "plan has the wrong shape")
+            return
+        if msg.status not in ("solved", "solved_inaccurate"):
+            return  # the plant falls back for it; nothing to assume from
+        store = self.plans[name]
+        store[(msg.k, msg.iteration)] = Plan(msg.k, msg.iteration, msg.z, msg.v)
+        while len(store) > KEEP_PLANS:
+            store.popitem(last=False)
+        if self.pending is not None:
+            self._try_solve()
+
+    # ------------------------------------------------------------------ solve
+    def _lookup(self, name: str, ref: tuple[int, int] | None, exact: bool) -> tuple[bool, Plan | None]:
+        if ref is None:
+            return True, None
+        store = self.plans[name]
+        if ref in store:
+            return True, store[ref]
+        if exact:
+            return False, None
+        older = [key for key in store if key <= ref]
+        return True, (store[max(older)] if older else None)
+
+    def _try_solve(self, exact: bool = True) -> None:
+        release = self.pending
+        if release is None or self.stopped:
+            return
+        plans = {}
+        for name, ref in release.assumed.items():
+            found, plan = self._lookup(name, ref, exact)
+            if not found:
+                self._arm_wait()
+                return
+            if ref is not None and (plan is None or (plan.k, plan.iteration) != ref):
+                self.stale_assumptions += 1
+            plans[self.neighbour_names[name]] = plan
+        self.pending = None
+        self._cancel_wait()
+        states = {self.group[name]: x for name, x in release.states.items()}
+        sol = self.controller.solve(release.k, states, release.alpha, release.beta, plans)
+        self.solves += 1
+        self._last_done = (release.k, release.iteration)
+        msg = PlanMessage(run=self.run_id, k=release.k, iteration=release.iteration, sender=self.name,
+                          status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
+                          qp_iterations=int(sol.iterations), sent_at=self.bus.now())
+        self.bus.publish(keys.plan(self.run_id, self.name), encode(msg))
+
+    def _arm_wait(self) -> None:
+        if self.plan_wait is not None and self._wait_timer is None:
+            self._wait_timer = self.bus.call_later(self.plan_wait, self._wait_expired)
+
+    def _wait_expired(self) -> None:
+        self._wait_timer = None
+        self._try_solve(exact=False)
+
+    def _cancel_wait(self) -> None:
+        if self._wait_timer is not None:
+            self._wait_timer.cancel()
+            self._wait_timer = None
+
+    @property
+    def rejected_total(self) -> int:
+        return int(np.sum(list(self.rejected.values()))) if self.rejected else 0

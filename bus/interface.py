@@ -1,0 +1,70 @@
+"""The transport interface shared by the in-memory bus and the Zenoh bus.
+
+Handlers and timers always run on the thread that calls ``run``: node code is single-threaded
+whatever the transport. Payloads are bytes; encoding is the nodes' business (``bus.codec``).
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+
+Handler = Callable[[str, bytes], None]
+AliveHandler = Callable[[str, bool], None]
+
+
+class Timer(ABC):
+    @abstractmethod
+    def cancel(self) -> None:
+        """Do not fire (no effect if it already fired)."""
+
+
+class Bus(ABC):
+    """Publish/subscribe with liveliness and one clock."""
+
+    @abstractmethod
+    def publish(self, key: str, payload: bytes) -> None:
+        """Send ``payload`` to every subscriber of ``key``."""
+
+    @abstractmethod
+    def subscribe(self, key: str, handler: Handler) -> None:
+        """Call ``handler(key, payload)`` for each message on ``key`` (``prefix/*`` matches one chunk)."""
+
+    @abstractmethod
+    def declare_alive(self, key: str) -> None:
+        """Hold a liveliness token on ``key`` until the bus is closed (or the process dies)."""
+
+    @abstractmethod
+    def watch_alive(self, pattern: str, handler: AliveHandler) -> None:
+        """Call ``handler(key, alive)`` when a token matching ``pattern`` appears or disappears,
+        including the tokens that exist already."""
+
+    @abstractmethod
+    def now(self) -> float:
+        """Seconds on the bus's clock (simulated for the in-memory bus)."""
+
+    @abstractmethod
+    def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
+        """Run ``fn`` on the dispatch thread after ``delay`` seconds of bus time."""
+
+    @abstractmethod
+    def run(self, until: Callable[[], bool], timeout: float | None = None) -> bool:
+        """Dispatch messages and timers until ``until()`` is true (returns True) or ``timeout``
+        seconds of bus time pass (returns False)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release every resource; idempotent."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def key_matches(pattern: str, key: str) -> bool:
+    """Exact match, or ``a/b/*`` matching ``a/b/<one chunk>``."""
+    if pattern.endswith("/*"):
+        prefix = pattern[:-1]
+        return key.startswith(prefix) and "/" not in key[len(prefix):] and len(key) > len(prefix)
+    return pattern == key

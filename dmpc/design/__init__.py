@@ -1,0 +1,112 @@
+"""Offline design: gains, terminal set, sigma and tube tightening, assembled and reported."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dmpc.design.errors import DesignError
+from dmpc.design.gains import GainDesign, lmi_gains, lqr_gains, verify_gains
+from dmpc.design.terminal_set import TerminalSet, maximal_admissible_set
+from dmpc.design.tubes import RevisionBound, Tightening, robust_tightening
+from dmpc.system import CoupledSystem
+
+__all__ = ["Design", "DesignError", "GainDesign", "RevisionBound", "TerminalSet", "Tightening", "design_system"]
+
+
+@dataclass(frozen=True)
+class Design:
+    """Everything computed offline that the agents and the coordinator use.
+
+    Attributes
+    ----------
+    gains : GainDesign
+    terminal : TerminalSet
+    tightening : list of Tightening, one per subsystem
+    horizon : int
+    alpha0 : ndarray, shape (n,)
+    beta0 : float
+    tube : str
+    """
+
+    gains: GainDesign
+    terminal: TerminalSet
+    tightening: list[Tightening]
+    horizon: int
+    alpha0: np.ndarray
+    beta0: float
+    tube: str
+
+    @property
+    def sigma0(self) -> float:
+        return self.terminal.sigma(self.alpha0)
+
+    def to_json(self) -> dict:
+        """The design as plain JSON (the content of ``design.json``)."""
+        g = self.gains
+        return {
+            "gains_method": g.method,
+            "objective": g.objective,
+            "rho": g.rho,
+            "lyapunov_margin": g.lyapunov_margin,
+            "lyapunov_tolerance": g.lyapunov_tolerance,
+            "K": [k.tolist() for k in g.K],
+            "P": [p.tolist() for p in g.P],
+            "omega_rows": self.terminal.rows,
+            "t_star": self.terminal.t_star,
+            "omega": self.terminal.omega.tolist(),
+            "sigma0": self.sigma0,
+            "alpha0": self.alpha0.tolist(),
+            "beta0": self.beta0,
+            "horizon": self.horizon,
+            "tube": self.tube,
+            "terminal_margin": [t.terminal_margin.tolist() for t in self.tightening],
+        }
+
+
+def design_system(system: CoupledSystem, *, gains: str, horizon: int, alpha0: np.ndarray, beta0: float,
+                  given: tuple[list[np.ndarray], list[np.ndarray]] | None = None, tube: str = "none",
+                  revision_bounds: dict[int, RevisionBound] | None = None) -> Design:
+    """Run the whole offline design; DesignError (one line, with figures) if anything fails.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    gains : {"lmi", "lqr", "given"}
+    horizon : int
+        N.
+    alpha0 : ndarray, shape (n,)
+    beta0 : float
+    given : (K list, P list), required for ``gains="given"``
+    tube : {"none", "robust"}
+    revision_bounds : dict subsystem index -> RevisionBound, required for ``tube="robust"``
+    """
+    if gains == "lmi":
+        g = lmi_gains(system)
+    elif gains == "lqr":
+        g = lqr_gains(system)
+    elif gains == "given":
+        if given is None:
+            raise DesignError("gains 'given' needs K and P for every subsystem")
+        g = verify_gains(system, given[0], given[1], "given")
+    else:
+        raise DesignError(f"unknown gain design method {gains!r} (expected lmi, lqr or given)")
+    terminal = maximal_admissible_set(system, g.K)
+    sigma0 = terminal.sigma(alpha0)
+    if beta0 > sigma0 + 1e-12:
+        raise DesignError(f"terminal: beta0 = {beta0:.6g} exceeds sigma(alpha0) = {sigma0:.6g}: the initial "
+                          "terminal box would leave X^f; lower beta0 or move alpha0")
+    tightening = []
+    for i, s in enumerate(system.subsystems):
+        if tube == "robust":
+            t = robust_tightening(system, i, g.K[i], horizon, revision_bounds or {})
+            if np.any(t.terminal_margin >= beta0):
+                raise DesignError(
+                    f"tube: robust: the tightened terminal box of subsystem {s.name} is empty at k = 0 "
+                    f"(margin {np.max(t.terminal_margin):.4g} >= beta0 = {beta0:.4g})")
+        else:
+            r_x = 0 if s.state_set is None else s.state_set.H.shape[0]
+            t = Tightening.none(s.n, s.input_set.H.shape[0], r_x, horizon)
+        tightening.append(t)
+    return Design(gains=g, terminal=terminal, tightening=tightening, horizon=horizon,
+                  alpha0=np.asarray(alpha0, float), beta0=float(beta0), tube=tube)

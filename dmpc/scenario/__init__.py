@@ -1,0 +1,34 @@
+"""Scenario files: schema, safe loading with overrides, and building the coupled system."""
+from dmpc.scenario.build import alpha0_vector, build_system, given_gains, revision_bounds
+from dmpc.scenario.load import (
+    ScenarioError,
+    dump_resolved,
+    load_scenario,
+    parse_override,
+    scenario_json_schema,
+    validate_scenario,
+)
+from dmpc.scenario.schema import (
+    BoxSpec,
+    ChainFamily,
+    CouplingSpec,
+    DesignSpec,
+    FamilyCouplingSpec,
+    FaultsSpec,
+    LinkFaultSpec,
+    OptionsSpec,
+    PolytopeSpec,
+    RevisionBoundSpec,
+    Scenario,
+    SubsystemSpec,
+    SubsystemTemplate,
+    TerminalSpec,
+)
+
+__all__ = [
+    "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "FamilyCouplingSpec", "FaultsSpec",
+    "LinkFaultSpec", "OptionsSpec", "PolytopeSpec", "RevisionBoundSpec", "Scenario", "ScenarioError",
+    "SubsystemSpec", "SubsystemTemplate", "TerminalSpec", "alpha0_vector", "build_system",
+    "dump_resolved", "given_gains", "load_scenario", "parse_override", "revision_bounds",
+    "scenario_json_schema", "validate_scenario",
+]

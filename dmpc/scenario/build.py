@@ -1,0 +1,107 @@
+"""From a validated :class:`~dmpc.scenario.schema.Scenario` to the numerical objects of ``dmpc.system``.
+
+Subsystems are indexed 0..M-1 in file order (a family: "1".."M" -> 0..M-1).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from dmpc.scenario.load import ScenarioError
+from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario
+from dmpc.system import CoupledSystem, Coupling, LinearSet, Subsystem
+
+__all__ = ["alpha0_vector", "build_system", "given_gains", "revision_bounds"]
+
+
+def _array(rows: list) -> np.ndarray:
+    return np.array(rows, dtype=float)
+
+
+def _symmetric(rows: list) -> np.ndarray:
+    """The symmetric part (the schema allows asymmetry up to a 1e-9 relative tolerance)."""
+    a = _array(rows)
+    return (a + a.T) / 2
+
+
+def _linear_set(spec: BoxSpec | PolytopeSpec | None) -> LinearSet | None:
+    if spec is None:
+        return None
+    if isinstance(spec, BoxSpec):
+        return LinearSet.box(spec.lower, spec.upper)
+    return LinearSet.polytope(spec.H, spec.h)
+
+
+def build_system(scn: Scenario) -> CoupledSystem:
+    """The coupled system of a scenario.
+
+    Parameters
+    ----------
+    scn : Scenario
+
+    Returns
+    -------
+    CoupledSystem
+        Subsystems in file order with ``name`` = the user's id; couplings with 0-based indices
+        (B = zeros where the file omits it); ``scn.graph`` as extra edges.
+    """
+    specs = scn.resolved_subsystems()
+    index = {s.name: i for i, s in enumerate(specs)}
+    subsystems = tuple(
+        Subsystem(name=s.name, A=_array(s.A), B=_array(s.B), Q=_symmetric(s.Q), R=_symmetric(s.R),
+                  x0=_array(s.x0), input_set=_linear_set(s.input), state_set=_linear_set(s.state))
+        for s in specs)
+    couplings = []
+    for c in scn.resolved_couplings():
+        t, s = index[c.target], index[c.source]
+        B = _array(c.B) if c.B is not None else np.zeros((subsystems[t].n, subsystems[s].m))
+        couplings.append(Coupling(target=t, source=s, A=_array(c.A), B=B))
+    edges = tuple(tuple(sorted((index[a], index[b]))) for a, b in scn.graph)
+    return CoupledSystem(subsystems=subsystems, couplings=tuple(couplings), edges=edges)
+
+
+def given_gains(scn: Scenario) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The scenario's K_i (m_i x n_i) and P_i (n_i x n_i, symmetrised), in subsystem order.
+
+    Raises
+    ------
+    ScenarioError
+        If ``design.gains`` is not ``'given'``.
+    """
+    if scn.design.gains != "given":
+        raise ScenarioError(f"design.gains: is '{scn.design.gains}', gains are read from the scenario "
+                            "only when it is 'given'", field="design.gains")
+    specs = scn.resolved_subsystems()
+    return [_array(s.K) for s in specs], [_symmetric(s.P) for s in specs]
+
+
+def alpha0_vector(scn: Scenario, system: CoupledSystem) -> np.ndarray:
+    """The global alpha(0): ``terminal.alpha0`` stacked in subsystem order, zeros where absent.
+
+    Parameters
+    ----------
+    scn : Scenario
+    system : CoupledSystem
+        ``build_system(scn)`` (only its names and offsets are used).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    alpha = np.zeros(system.n)
+    given = dict(scn.terminal.alpha0 or {})
+    for i, sub in enumerate(system.subsystems):
+        if sub.name in given:
+            alpha[system.xs(i)] = given.pop(sub.name)
+    if given:
+        name = next(iter(given))
+        raise ScenarioError(f"terminal.alpha0.{name}: subsystem '{name}' is not in the system",
+                            field=f"terminal.alpha0.{name}")
+    return alpha
+
+
+def revision_bounds(scn: Scenario) -> dict:
+    """``{index: dmpc.design.tubes.RevisionBound}`` for the subsystems that declare one."""
+    from dmpc.design.tubes import RevisionBound  # lazy: keeps the scenario package light
+
+    return {i: RevisionBound(state=_array(s.revision_bound.state), input=_array(s.revision_bound.input))
+            for i, s in enumerate(scn.resolved_subsystems()) if s.revision_bound is not None}

@@ -1,0 +1,572 @@
+"""Pydantic models of the scenario file (see ``docs/scenarios.md``).
+
+Every model forbids unknown fields and every field carries a description: the models are
+the single source of the JSON Schema and of the field reference in the docs.
+
+Checks that need more than one field (matrix shapes, definiteness, names that must exist)
+raise :class:`SpecError`, a ``ValueError`` that remembers the path of the offending field
+relative to the model being validated; ``dmpc.scenario.load`` turns it into the one-line
+``ScenarioError`` message, e.g. ``subsystems[2].A: expected a 2x2 matrix, got 2x3``.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+import re
+from typing import Annotated, Literal, Optional, Union
+
+import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, model_validator
+
+__all__ = [
+    "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "FamilyCouplingSpec", "FaultsSpec",
+    "LinkFaultSpec", "OptionsSpec", "PolytopeSpec", "RevisionBoundSpec", "Scenario", "SpecError",
+    "SubsystemSpec", "SubsystemTemplate", "TerminalSpec",
+]
+
+SYM_RTOL = 1e-9
+"""Relative tolerance of the symmetry check (on the largest entry's magnitude)."""
+PD_RTOL = 1e-10
+"""A matrix is positive definite when its smallest eigenvalue exceeds this times its largest entry."""
+PLANT = "plant"
+"""The reserved name of the plant process in fault links."""
+_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+
+
+class SpecError(ValueError):
+    """A validation failure of the field at ``path`` (relative to the model being validated).
+
+    Parameters
+    ----------
+    path : str
+        E.g. ``"A"``, ``"input.lower[0]"``, ``"couplings[1].source"``; ``""`` is the model itself.
+    message : str
+        One line, without the path.
+    """
+
+    def __init__(self, path: str, message: str) -> None:
+        super().__init__(f"{path}: {message}" if path else message)
+        self.path = path
+        self.message = message
+
+
+def _show(value: object) -> str:
+    """A short one-line rendering of a user value for error messages."""
+    text = repr(value).replace("\n", " ")
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _number(value: object, path: str, allow_inf: bool = False) -> float:
+    """Return ``value`` as a float; reject strings, booleans, NaN and (unless allowed) infinities."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise SpecError(path, f"expected a number, got {_show(value)}")
+    try:
+        out = float(value)
+    except OverflowError:
+        raise SpecError(path, f"number out of range: {_show(value)}") from None
+    if math.isnan(out):
+        raise SpecError(path, "expected a number, got NaN")
+    if math.isinf(out) and not allow_inf:
+        raise SpecError(path, f"expected a finite number, got {out}")
+    return out
+
+
+def _as_list(value: object) -> object:
+    return value.tolist() if isinstance(value, np.ndarray) else value
+
+
+def _matrix(value: object) -> list[list[float]]:
+    """Validate a non-empty rectangular list of rows of finite numbers."""
+    value = _as_list(value)
+    if not isinstance(value, (list, tuple)) or not value:
+        raise SpecError("", f"expected a matrix (a non-empty list of rows), got {_show(value)}")
+    rows = []
+    for r, row in enumerate(value):
+        if not isinstance(row, (list, tuple)) or not row:
+            raise SpecError(f"[{r}]", f"expected a row (a non-empty list of numbers), got {_show(row)}")
+        rows.append([_number(x, f"[{r}][{c}]") for c, x in enumerate(row)])
+    widths = sorted({len(row) for row in rows})
+    if len(widths) > 1:
+        raise SpecError("", f"rows have different lengths {widths}")
+    return rows
+
+
+def _vector(value: object, allow_inf: bool) -> list[float]:
+    value = _as_list(value)
+    if not isinstance(value, (list, tuple)) or not value:
+        raise SpecError("", f"expected a non-empty list of numbers, got {_show(value)}")
+    return [_number(x, f"[{i}]", allow_inf) for i, x in enumerate(value)]
+
+
+def _name(value: object) -> str:
+    """Subsystem names: strings or integers (converted), usable in Zenoh keys."""
+    if isinstance(value, bool) or not isinstance(value, (str, int)):
+        raise SpecError("", f"expected a name (a string or an integer), got {_show(value)}")
+    text = str(value)
+    if not _NAME_RE.match(text):
+        raise SpecError("", f"invalid name {text!r}: use letters, digits, '_', '-' and '.' "
+                            "(not starting with '-' or '.')")
+    return text
+
+
+def _subsystem_name(value: object) -> str:
+    text = _name(value)
+    if text == PLANT:
+        raise SpecError("", f"'{PLANT}' is reserved for the plant process")
+    return text
+
+
+Matrix = Annotated[list[list[float]], BeforeValidator(_matrix)]
+Vector = Annotated[list[float], BeforeValidator(lambda v: _vector(v, allow_inf=False))]
+BoundVector = Annotated[list[float], BeforeValidator(lambda v: _vector(v, allow_inf=True))]
+Name = Annotated[str, BeforeValidator(_subsystem_name)]
+Endpoint = Annotated[str, BeforeValidator(_name)]
+PosInt = Annotated[int, Field(strict=True, ge=1)]
+PosFloat = Annotated[float, Field(strict=True, gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)]
+Probability = Annotated[float, Field(strict=True, ge=0, lt=1, allow_inf_nan=False)]
+
+
+def _shape(rows: list[list[float]]) -> tuple[int, int]:
+    return len(rows), len(rows[0])
+
+
+def check_shape(mat: list[list[float]], shape: tuple[int, int], path: str, hint: str = "") -> None:
+    """Raise SpecError unless ``mat`` has ``shape``."""
+    got = _shape(mat)
+    if got != shape:
+        tail = f" ({hint})" if hint else ""
+        raise SpecError(path, f"expected a {shape[0]}x{shape[1]} matrix, got {got[0]}x{got[1]}{tail}")
+
+
+def check_length(vec: list[float], n: int, path: str, what: str) -> None:
+    """Raise SpecError unless ``vec`` has ``n`` entries."""
+    if len(vec) != n:
+        raise SpecError(path, f"expected {n} entries ({what}), got {len(vec)}")
+
+
+def check_definite(mat: list[list[float]], path: str, strict: bool) -> None:
+    """Symmetric (relative tolerance ``SYM_RTOL``) and positive (semi)definite, else SpecError."""
+    a = np.asarray(mat, dtype=float)
+    scale = float(np.abs(a).max())
+    asym = float(np.abs(a - a.T).max())
+    if asym > SYM_RTOL * scale:
+        raise SpecError(path, f"must be symmetric (largest |M - M^T| entry is {asym:.3g})")
+    low = float(np.linalg.eigvalsh((a + a.T) / 2).min())
+    if strict and not low > PD_RTOL * scale:
+        raise SpecError(path, f"must be positive definite (smallest eigenvalue {low:.4g})")
+    if not strict and low < -SYM_RTOL * scale:
+        raise SpecError(path, f"must be positive semidefinite (smallest eigenvalue {low:.4g})")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BoxSpec(_Model):
+    """A box ``lower <= v <= upper`` (elementwise)."""
+
+    lower: BoundVector = Field(description="Lower bounds, one per coordinate; `-.inf` for none. NaN is rejected.")
+    upper: BoundVector = Field(description="Upper bounds, one per coordinate; `.inf` for none. Must be >= lower.")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "BoxSpec":
+        check_length(self.upper, len(self.lower), "upper", "one per coordinate, like lower")
+        for i, (lo, hi) in enumerate(zip(self.lower, self.upper)):
+            if lo > hi:
+                raise SpecError(f"lower[{i}]", f"lower bound {lo:g} is greater than upper bound {hi:g}")
+        return self
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the box."""
+        return len(self.lower)
+
+    def origin_inside(self, path: str) -> None:
+        """Raise SpecError unless the origin is in the interior (``lower < 0 < upper``)."""
+        for i, (lo, hi) in enumerate(zip(self.lower, self.upper)):
+            if not lo < 0:
+                raise SpecError(f"{path}.lower[{i}]", f"must be < 0 so that the set contains the origin "
+                                                      f"in its interior, got {lo:g}")
+            if not hi > 0:
+                raise SpecError(f"{path}.upper[{i}]", f"must be > 0 so that the set contains the origin "
+                                                      f"in its interior, got {hi:g}")
+
+
+class PolytopeSpec(_Model):
+    """A polytope ``H v <= h``."""
+
+    H: Matrix = Field(description="Constraint rows, shape (rows, dimension); finite numbers.")
+    h: Vector = Field(description="Right-hand sides, one per row of H; finite numbers.")
+
+    @model_validator(mode="after")
+    def _rows(self) -> "PolytopeSpec":
+        check_length(self.h, len(self.H), "h", "one per row of H")
+        return self
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the space (columns of H)."""
+        return len(self.H[0])
+
+    def origin_inside(self, path: str) -> None:
+        """Raise SpecError unless the origin is in the interior (``h > 0``)."""
+        for i, value in enumerate(self.h):
+            if not value > 0:
+                raise SpecError(f"{path}.h[{i}]", f"must be > 0 so that the set contains the origin "
+                                                  f"in its interior, got {value:g}")
+
+
+def _set_kind(value: object) -> str:
+    """Choose the set model: a mapping with ``H`` or ``h`` is a polytope, anything else a box."""
+    if isinstance(value, PolytopeSpec) or (isinstance(value, dict) and ("H" in value or "h" in value)):
+        return "polytope"
+    return "box"
+
+
+SET_TAGS = ("box", "polytope")
+"""Union tags pydantic inserts into error locations after ``input``/``state``."""
+SetSpec = Annotated[
+    Union[Annotated[BoxSpec, Tag("box")], Annotated[PolytopeSpec, Tag("polytope")]],
+    Discriminator(_set_kind),
+]
+
+
+class RevisionBoundSpec(_Model):
+    """Elementwise bounds on how much a subsystem's plan may change from one step to the next."""
+
+    state: Vector = Field(description="Bound on |z(k+t|k) - z(k+t|k-1)|, one entry per state (n_i), each >= 0.")
+    input: Vector = Field(description="Bound on |v(k+t|k) - v(k+t|k-1)|, one entry per input (m_i), each >= 0.")
+
+    @model_validator(mode="after")
+    def _nonnegative(self) -> "RevisionBoundSpec":
+        for field in ("state", "input"):
+            for i, value in enumerate(getattr(self, field)):
+                if value < 0:
+                    raise SpecError(f"{field}[{i}]", f"must be >= 0, got {value:g}")
+        return self
+
+
+class SubsystemTemplate(_Model):
+    """The dynamics, cost and constraints of one subsystem (without its name and x0)."""
+
+    A: Matrix = Field(description="A_ii, the subsystem's own state matrix, n_i x n_i.")
+    B: Matrix = Field(description="B_ii, the subsystem's own input matrix, n_i x m_i.")
+    Q: Matrix = Field(description="State cost weight Q_i, n_i x n_i, symmetric positive semidefinite.")
+    R: Matrix = Field(description="Input cost weight R_i, m_i x m_i, symmetric positive definite.")
+    input: SetSpec = Field(
+        description="Input constraint set U_i: a box {lower, upper} or a polytope {H, h}, of dimension m_i. "
+                    "Must contain the origin in its interior.")
+    state: Optional[SetSpec] = Field(
+        None, description="State constraint set X_i (box or polytope, dimension n_i, origin in its interior); "
+                          "omitted or null means no state constraint.")
+    K: Optional[Matrix] = Field(
+        None, description="Terminal gain K_i, m_i x n_i. Required when design.gains is 'given', ignored otherwise.")
+    P: Optional[Matrix] = Field(
+        None, description="Terminal weight P_i, n_i x n_i, symmetric positive definite. "
+                          "Required when design.gains is 'given', ignored otherwise.")
+    revision_bound: Optional[RevisionBoundSpec] = Field(
+        None, description="Bounds on this subsystem's plan revisions between steps. Required for every "
+                          "coupling source when options.tube is 'robust' (they bound the neighbours' W_i).")
+
+    @property
+    def n(self) -> int:
+        """Number of states n_i."""
+        return len(self.A)
+
+    @property
+    def m(self) -> int:
+        """Number of inputs m_i."""
+        return len(self.B[0])
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "SubsystemTemplate":
+        n = len(self.A)
+        check_shape(self.A, (n, n), "A", "A must be square")
+        if len(self.B) != n:
+            raise SpecError("B", f"expected {n} rows (n = {n} states, from A), got {len(self.B)}")
+        m = self.m
+        check_shape(self.Q, (n, n), "Q", f"n x n with n = {n}")
+        check_definite(self.Q, "Q", strict=False)
+        check_shape(self.R, (m, m), "R", f"m x m with m = {m} inputs, from B")
+        check_definite(self.R, "R", strict=True)
+        _check_set(self.input, m, "input", f"m = {m} inputs, from B")
+        if self.state is not None:
+            _check_set(self.state, n, "state", f"n = {n} states, from A")
+        if self.K is not None:
+            check_shape(self.K, (m, n), "K", "m x n")
+        if self.P is not None:
+            check_shape(self.P, (n, n), "P", "n x n")
+            check_definite(self.P, "P", strict=True)
+        if self.revision_bound is not None:
+            check_length(self.revision_bound.state, n, "revision_bound.state", f"n = {n} states")
+            check_length(self.revision_bound.input, m, "revision_bound.input", f"m = {m} inputs")
+        return self
+
+
+def _check_set(spec: BoxSpec | PolytopeSpec, dim: int, path: str, what: str) -> None:
+    if isinstance(spec, BoxSpec):
+        check_length(spec.lower, dim, f"{path}.lower", what)
+    elif spec.dim != dim:
+        raise SpecError(f"{path}.H", f"expected {dim} columns ({what}), got {spec.dim}")
+    spec.origin_inside(path)
+
+
+class _Named(_Model):
+    name: Name = Field(
+        description="The subsystem's unique id (integers are converted to strings): used in couplings, "
+                    "graph, message keys and records. Letters, digits, '_', '-', '.'; 'plant' is reserved.")
+
+
+class SubsystemSpec(SubsystemTemplate, _Named):
+    """One subsystem: a template plus its name and initial state."""
+
+    x0: Vector = Field(description="Initial state x_i(0), n_i entries.")
+
+    @model_validator(mode="after")
+    def _x0_length(self) -> "SubsystemSpec":
+        check_length(self.x0, self.n, "x0", f"n = {self.n} states, from A")
+        return self
+
+
+class CouplingSpec(_Model):
+    """Dynamic coupling: ``x_target(k+1) += A x_source(k) + B u_source(k)``."""
+
+    target: Name = Field(description="Name of the subsystem that is influenced (i in A_ij).")
+    source: Name = Field(description="Name of the influencing subsystem (j in A_ij), different from target.")
+    A: Matrix = Field(description="A_ij, n_target x n_source.")
+    B: Optional[Matrix] = Field(None, description="B_ij, n_target x m_source; omitted or null means zeros.")
+
+
+class FamilyCouplingSpec(_Model):
+    """The coupling applied in both directions between neighbours of a generated chain."""
+
+    A: Matrix = Field(description="A_ij between chain neighbours, n x n (n of the template).")
+    B: Optional[Matrix] = Field(None, description="B_ij between chain neighbours, n x m; omitted or null means zeros.")
+
+
+class ChainFamily(_Model):
+    """M copies of one subsystem named "1".."M", coupled along a chain 1-2-...-M."""
+
+    kind: Literal["chain"] = Field(description="Family kind; only 'chain' exists.")
+    M: PosInt = Field(description="Number of subsystems (>= 1), named \"1\"..\"M\".")
+    subsystem: SubsystemTemplate = Field(description="The subsystem every member copies (no name, no x0).")
+    x0_cycle: list[Vector] = Field(
+        min_length=1, description="Initial states used cyclically: subsystem i (0-based) starts at "
+                                  "x0_cycle[i % len(x0_cycle)]. Each entry has n entries.")
+    coupling: FamilyCouplingSpec = Field(
+        description="Coupling applied in both directions between subsystems i and i+1.")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "ChainFamily":
+        n, m = self.subsystem.n, self.subsystem.m
+        for i, x0 in enumerate(self.x0_cycle):
+            check_length(x0, n, f"x0_cycle[{i}]", f"n = {n} states of the template")
+        check_shape(self.coupling.A, (n, n), "coupling.A", "n x n of the template")
+        if self.coupling.B is not None:
+            check_shape(self.coupling.B, (n, m), "coupling.B", "n x m of the template")
+        return self
+
+    def members(self) -> list[SubsystemSpec]:
+        """The generated subsystems "1".."M"."""
+        fields = {k: getattr(self.subsystem, k) for k in SubsystemTemplate.model_fields}
+        return [SubsystemSpec.model_construct(name=str(i + 1), x0=list(self.x0_cycle[i % len(self.x0_cycle)]),
+                                              **fields) for i in range(self.M)]
+
+    def couplings(self) -> list[CouplingSpec]:
+        """Both directions between i and i+1, in the order (1<-2, 2<-1, 2<-3, 3<-2, ...)."""
+        out = []
+        for i in range(1, self.M):
+            for target, source in ((i, i + 1), (i + 1, i)):
+                out.append(CouplingSpec.model_construct(target=str(target), source=str(source),
+                                                        A=self.coupling.A, B=self.coupling.B))
+        return out
+
+
+class DesignSpec(_Model):
+    """How the terminal gains K_i and weights P_i are obtained."""
+
+    gains: Literal["lmi", "lqr", "given"] = Field(
+        "lmi", description="'lmi': block-diagonal LMI maximising log det P^-1; 'lqr': per-subsystem DARE, "
+                           "verified on the coupled system; 'given': K and P from each subsystem, verified.")
+
+
+class TerminalSpec(_Model):
+    """The initial terminal box ``||x_i(N) - alpha_i(0)||_inf <= beta(0)``."""
+
+    alpha0: Optional[dict[Name, Vector]] = Field(
+        None, description="Initial box centres alpha_i(0) by subsystem name (n_i entries each); "
+                          "subsystems not listed start at zeros.")
+    beta0: PosFloat = Field(0.5, description="Initial box radius beta(0) > 0; must not exceed sigma(alpha(0)).")
+
+
+class OptionsSpec(_Model):
+    """Algorithm and runtime options."""
+
+    coupling: Literal["feedforward", "nominal"] = Field(
+        "feedforward", description="'feedforward': predictions include the neighbours' assumed trajectories; "
+                                   "'nominal': the paper's decoupled model (not recursively feasible in general).")
+    tube: Literal["none", "robust"] = Field(
+        "none", description="'none': no constraint tightening; 'robust': tighten by the error tube built from "
+                            "the neighbours' revision bounds.")
+    iterations: PosInt = Field(1, description="Jacobi rounds per step (plans exchanged and re-solved), >= 1.")
+    tolerance: PosFloat = Field(1e-9, description="Jacobi stops early when the largest plan change is below this.")
+    initial_iterations: PosInt = Field(200, description="Maximum Jacobi rounds at k = 0 (iterate to convergence).")
+    initial_tolerance: PosFloat = Field(1e-9, description="Jacobi convergence tolerance at k = 0.")
+    mode: Literal["lockstep", "realtime"] = Field(
+        "lockstep", description="'lockstep': advance as soon as all plans are in; 'realtime': advance every dt.")
+    dt: PosFloat = Field(0.1, description="Seconds per step in realtime mode.")
+    deadline: Optional[PosFloat] = Field(
+        None, description="Seconds an agent has to deliver its plan; null means wait forever in lockstep "
+                          "and dt in realtime. A late plan counts as missed (fallback applied).")
+
+
+class LinkFaultSpec(_Model):
+    """Faults injected on one directed communication link."""
+
+    source: Endpoint = Field(description="Sending side: a subsystem name or 'plant'.")
+    target: Endpoint = Field(description="Receiving side: a subsystem name or 'plant'.")
+    delay_ms: NonNegFloat = Field(0.0, description="Fixed delay on this link, milliseconds, >= 0.")
+    jitter_ms: NonNegFloat = Field(0.0, description="Extra uniform random delay in [0, jitter_ms], milliseconds.")
+    loss: Probability = Field(0.0, description="Probability in [0, 1) that a message on this link is dropped.")
+
+
+class FaultsSpec(_Model):
+    """Communication faults (seeded by ``seed``); per-link entries replace the global values on their link."""
+
+    delay_ms: NonNegFloat = Field(0.0, description="Fixed delay on every link, milliseconds, >= 0.")
+    jitter_ms: NonNegFloat = Field(0.0, description="Extra uniform random delay in [0, jitter_ms] on every link.")
+    loss: Probability = Field(0.0, description="Probability in [0, 1) that any message is dropped.")
+    links: list[LinkFaultSpec] = Field(default_factory=list, description="Per-link overrides of the above.")
+
+
+class Scenario(_Model):
+    """A complete experiment: the coupled system, the design choices and the run options."""
+
+    name: str = Field(description="Short name of the scenario (used in run folders and reports).")
+    description: str = Field("", description="Free text describing the scenario.")
+    subsystems: Optional[Annotated[list[SubsystemSpec], Field(min_length=1)]] = Field(
+        None, description="The subsystems, in order (0-based index = position). Give this or 'family'.")
+    family: Optional[ChainFamily] = Field(
+        None, description="A generated family of identical subsystems instead of 'subsystems'.")
+    couplings: list[CouplingSpec] = Field(
+        default_factory=list, description="Dynamic couplings A_ij/B_ij (each also a communication edge); "
+                                          "with a family they are added to the chain's.")
+    graph: list[tuple[Name, Name]] = Field(
+        default_factory=list, description="Extra undirected communication edges [a, b] without dynamic coupling.")
+    horizon: PosInt = Field(10, description="Prediction horizon N, >= 1.")
+    steps: PosInt = Field(30, description="Number of closed-loop steps to simulate, >= 1.")
+    seed: Annotated[int, Field(strict=True)] = Field(0, description="Seed of every random choice (faults).")
+    design: DesignSpec = Field(default_factory=DesignSpec, description="Offline gain design.")
+    terminal: TerminalSpec = Field(default_factory=TerminalSpec, description="Initial terminal box.")
+    options: OptionsSpec = Field(default_factory=OptionsSpec, description="Algorithm and runtime options.")
+    faults: FaultsSpec = Field(default_factory=FaultsSpec, description="Injected communication faults.")
+
+    def resolved_subsystems(self) -> list[SubsystemSpec]:
+        """The subsystems in order, with a family expanded."""
+        return list(self.subsystems) if self.family is None else self.family.members()
+
+    def resolved_couplings(self) -> list[CouplingSpec]:
+        """The family's chain couplings (if any) followed by the explicit ones."""
+        generated = [] if self.family is None else self.family.couplings()
+        return generated + list(self.couplings)
+
+    def subsystem_path(self, index: int) -> str:
+        """Where subsystem ``index`` is written in the file (for error messages)."""
+        return "family.subsystem" if self.family is not None else f"subsystems[{index}]"
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> "Scenario":
+        if self.subsystems is not None and self.family is not None:
+            raise SpecError("family", "give either 'subsystems' or 'family', not both")
+        if self.subsystems is None and self.family is None:
+            raise SpecError("subsystems", "required (or give 'family' to generate the subsystems)")
+        subs = self.resolved_subsystems()
+        index: dict[str, int] = {}
+        for i, s in enumerate(subs):
+            if s.name in index:
+                raise SpecError(f"subsystems[{i}].name",
+                                f"duplicate subsystem name '{s.name}' (also subsystems[{index[s.name]}])")
+            index[s.name] = i
+        _check_couplings(self, subs, index)
+        _check_graph(self.graph, index)
+        _check_gains(self, subs)
+        _check_alpha0(self.terminal.alpha0, subs, index)
+        _check_revision_bounds(self, subs, index)
+        _check_links(self.faults.links, index)
+        return self
+
+
+def _known(index: dict[str, int]) -> str:
+    names = list(index)
+    shown = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
+    return f"known: {shown}"
+
+
+def _check_name(name: str, index: dict[str, int], path: str) -> None:
+    if name not in index:
+        raise SpecError(path, f"unknown subsystem '{name}' ({_known(index)})")
+
+
+def _check_couplings(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
+    seen = {(c.target, c.source) for c in (scn.family.couplings() if scn.family else [])}
+    for k, c in enumerate(scn.couplings):
+        path = f"couplings[{k}]"
+        _check_name(c.target, index, f"{path}.target")
+        _check_name(c.source, index, f"{path}.source")
+        if c.target == c.source:
+            raise SpecError(f"{path}.source", f"must differ from target ('{c.target}'): "
+                                              "a subsystem's own dynamics are its A and B")
+        if (c.target, c.source) in seen:
+            raise SpecError(path, f"duplicate coupling of '{c.target}' by '{c.source}'")
+        seen.add((c.target, c.source))
+        t, s = subs[index[c.target]], subs[index[c.source]]
+        check_shape(c.A, (t.n, s.n), f"{path}.A", f"n_target x n_source = {t.n} x {s.n}")
+        if c.B is not None:
+            check_shape(c.B, (t.n, s.m), f"{path}.B", f"n_target x m_source = {t.n} x {s.m}")
+
+
+def _check_graph(graph: list[tuple[str, str]], index: dict[str, int]) -> None:
+    for k, (a, b) in enumerate(graph):
+        _check_name(a, index, f"graph[{k}][0]")
+        _check_name(b, index, f"graph[{k}][1]")
+        if a == b:
+            raise SpecError(f"graph[{k}]", f"an edge needs two different subsystems, got '{a}' twice")
+
+
+def _check_gains(scn: Scenario, subs: list[SubsystemSpec]) -> None:
+    if scn.design.gains != "given":
+        return
+    for i, s in enumerate(subs):
+        for field in ("K", "P"):
+            if getattr(s, field) is None:
+                raise SpecError(f"{scn.subsystem_path(i)}.{field}", "required when design.gains is 'given'")
+
+
+def _check_alpha0(alpha0: dict[str, list[float]] | None, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
+    for name, vec in (alpha0 or {}).items():
+        _check_name(name, index, f"terminal.alpha0.{name}")
+        n = subs[index[name]].n
+        check_length(vec, n, f"terminal.alpha0.{name}", f"n = {n} states of subsystem '{name}'")
+
+
+def _check_revision_bounds(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
+    if scn.options.tube != "robust":
+        return
+    for c in scn.resolved_couplings():
+        i = index[c.source]
+        if subs[i].revision_bound is None:
+            raise SpecError(f"{scn.subsystem_path(i)}.revision_bound",
+                            f"required when options.tube is 'robust' (subsystem '{c.source}' is a coupling "
+                            f"source of '{c.target}')")
+
+
+def _check_links(links: list[LinkFaultSpec], index: dict[str, int]) -> None:
+    for k, link in enumerate(links):
+        for field in ("source", "target"):
+            name = getattr(link, field)
+            if name != PLANT and name not in index:
+                raise SpecError(f"faults.links[{k}].{field}",
+                                f"unknown endpoint '{name}' (a subsystem name or '{PLANT}'; {_known(index)})")
+        if link.source == link.target:
+            raise SpecError(f"faults.links[{k}].target", f"must differ from source ('{link.source}')")

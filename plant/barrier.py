@@ -1,0 +1,337 @@
+"""The step barrier and coordinator: a pure state machine (no bus, no clock).
+
+Per step k it releases round 0 to every agent, collects their plans, runs further Jacobi rounds
+while the plans still move (k = 0: to convergence), then finalises the step: inputs (with the
+fallback of ALGORITHM.md 3.7 for missing or infeasible plans), alpha(k+1) = (A+BK) eta,
+beta(k+1) = sigma(alpha(k+1)), the plant update and the step record.
+
+Inputs are method calls (``start``, ``on_plan``, ``on_deadline``, ``on_agent_lost``,
+``on_agent_back``); outputs are lists of actions for the hosting process to carry out.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dmpc.bus.messages import PlanMessage, Release
+from dmpc.design import Design
+from dmpc.plant.dynamics import Plant
+from dmpc.system import CoupledSystem, project_onto
+from dmpc.trajectories import Plan, continued, shifted_input
+
+SOLVED_STATUSES = ("solved", "solved_inaccurate")
+
+
+@dataclass(frozen=True)
+class ProtocolOptions:
+    """What the coordinator needs from the scenario's options."""
+
+    steps: int
+    iterations: int = 1
+    tolerance: float = 1e-9
+    initial_iterations: int = 200
+    initial_tolerance: float = 1e-9
+
+
+@dataclass(frozen=True)
+class SendRelease:
+    release: Release
+
+
+@dataclass(frozen=True)
+class RoundOpened:
+    """A round was released; the host arms its deadline (if any) for it."""
+
+    k: int
+    iteration: int
+
+
+@dataclass(frozen=True)
+class StepCompleted:
+    record: "StepRecord"
+
+
+@dataclass(frozen=True)
+class RunFinished:
+    reason: str
+
+
+@dataclass
+class StepRecord:
+    """Everything recorded about one step.
+
+    Array shapes: x (n,), u (m,), alpha (n,), x_next (n,); per-agent lists have M entries.
+    """
+
+    k: int
+    x: np.ndarray
+    u: np.ndarray
+    alpha: np.ndarray
+    beta: float
+    x_next: np.ndarray
+    alpha_next: np.ndarray
+    beta_next: float
+    J: float
+    J_agents: list[float]
+    S: float
+    rounds: int
+    max_change: float
+    status: list[str]
+    fallback: list[bool]
+    fallback_reason: list[str]
+    solve_time: list[float]
+    qp_iterations: list[int]
+    plans_z: list[np.ndarray]
+    plans_v: list[np.ndarray]
+    latency: list[float] = field(default_factory=list)
+    step_time: float = float("nan")
+
+
+class Coordinator:
+    """The barrier for one run.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    design : Design
+    plant : Plant
+    options : ProtocolOptions
+    run_id : str
+    """
+
+    def __init__(self, system: CoupledSystem, design: Design, plant: Plant, options: ProtocolOptions,
+                 run_id: str) -> None:
+        self.system = system
+        self.design = design
+        self.plant = plant
+        self.options = options
+        self.run_id = run_id
+        self.names = [s.name for s in system.subsystems]
+        self.index = {name: i for i, name in enumerate(self.names)}
+        self.N = design.horizon
+        K = design.gains.K
+        self._K = K
+        self._gamma = [s.A + s.B @ K[i] for i, s in enumerate(system.subsystems)]
+        self._AK = system.A + system.B @ design.gains.K_global()
+        self.alpha = np.array(design.alpha0, float)
+        self.beta = float(design.beta0)
+        self.k = 0
+        self.iteration = 0
+        self.finished = False
+        self.last_plan: list[Plan | None] = [None] * system.M
+        self._round: dict[int, PlanMessage] = {}
+        self._missed: set[int] = set()
+        self._lost: set[int] = set()
+        self._step_latest: dict[int, Plan] = {}
+        self._prev_round: dict[int, Plan] = {}
+        self._round_status: dict[int, PlanMessage] = {}
+        self._max_change = float("nan")
+        self.rejected: dict[str, int] = {}
+        self.duplicates = 0
+
+    # ------------------------------------------------------------------ inputs
+    def start(self) -> list:
+        """Actions that release step 0, round 0."""
+        return self._release_round()
+
+    def on_plan(self, msg: PlanMessage) -> list:
+        """A plan arrived; returns the actions it triggers (possibly none)."""
+        if self.finished:
+            return []
+        problem = self.check(msg)
+        if problem is not None:
+            self.rejected[problem] = self.rejected.get(problem, 0) + 1
+            return []
+        i = self.index[msg.sender]
+        if i in self._round or i in self._missed:
+            self.duplicates += 1
+            return []
+        self._round[i] = msg
+        return self._maybe_close_round()
+
+    def on_deadline(self, k: int, iteration: int) -> list:
+        """The round's deadline passed: whoever has not delivered missed it."""
+        if self.finished or (k, iteration) != (self.k, self.iteration):
+            return []
+        for i in range(self.system.M):
+            if i not in self._round:
+                self._missed.add(i)
+        return self._maybe_close_round()
+
+    def on_agent_lost(self, name: str) -> list:
+        """Liveliness of agent ``name`` disappeared: stop waiting for it."""
+        i = self.index.get(name)
+        if i is None or self.finished:
+            return []
+        self._lost.add(i)
+        if i not in self._round:
+            self._missed.add(i)
+        return self._maybe_close_round()
+
+    def on_agent_back(self, name: str) -> None:
+        """Agent ``name`` is alive again: it is waited for from the next round on."""
+        i = self.index.get(name)
+        if i is not None:
+            self._lost.discard(i)
+
+    # ------------------------------------------------------------------ checks
+    def check(self, msg: PlanMessage) -> str | None:
+        """None if the plan belongs to the open round and has the right shapes; else the reason."""
+        if msg.run != self.run_id:
+            return "wrong run"
+        i = self.index.get(msg.sender)
+        if i is None:
+            return "unknown sender"
+        if (msg.k, msg.iteration) != (self.k, self.iteration):
+            return "stale" if (msg.k, msg.iteration) < (self.k, self.iteration) else "future"
+        sub = self.system.subsystems[i]
+        if msg.z.shape != (self.N + 1, sub.n) or msg.v.shape != (self.N, sub.m):
+            return "wrong shape"
+        if msg.status in SOLVED_STATUSES and not (np.all(np.isfinite(msg.z)) and np.all(np.isfinite(msg.v))):
+            return "non-finite plan"
+        return None
+
+    # ------------------------------------------------------------------ rounds
+    def _release_round(self) -> list:
+        self._round = {}
+        self._missed = set(self._lost)
+        actions: list = []
+        x_parts = self.system.split_state(self.plant.x)
+        alpha_parts = self.system.split_state(self.alpha)
+        for i, name in enumerate(self.names):
+            nb = self.system.neighbours[i]
+            assumed = {}
+            for j in nb:
+                if j == i:
+                    continue
+                ref = self._reference(j)
+                assumed[self.names[j]] = None if ref is None else (ref.k, ref.iteration)
+            release = Release(run=self.run_id, k=self.k, iteration=self.iteration, target=name,
+                              states={self.names[j]: x_parts[j].copy() for j in nb},
+                              alpha=alpha_parts[i].copy(), beta=self.beta, assumed=assumed)
+            actions.append(SendRelease(release))
+        actions.append(RoundOpened(self.k, self.iteration))
+        actions.extend(self._maybe_close_round())
+        return actions
+
+    def _reference(self, j: int) -> Plan | None:
+        """The plan of agent j its neighbours build their assumption from."""
+        if self.iteration > 0 and j in self._step_latest:
+            return self._step_latest[j]
+        return self.last_plan[j]
+
+    def _maybe_close_round(self) -> list:
+        if len(self._round) + len(self._missed - set(self._round)) < self.system.M:
+            return []
+        self._prev_round = dict(self._step_latest)
+        for i, msg in self._round.items():
+            self._round_status[i] = msg
+            if msg.status in SOLVED_STATUSES:
+                self._step_latest[i] = Plan(msg.k, msg.iteration, msg.z, msg.v)
+        rounds_allowed = self.options.initial_iterations if self.k == 0 else self.options.iterations
+        tol = self.options.initial_tolerance if self.k == 0 else self.options.tolerance
+        change = self._round_change()
+        self._max_change = change
+        converged = self.iteration > 0 and change < tol
+        if self.iteration + 1 < rounds_allowed and not converged and not self._missed:
+            self.iteration += 1
+            return self._release_round()
+        return self._finalise_step()
+
+    def _round_change(self) -> float:
+        """Largest change between this round's plans and the previous round's (inf if none)."""
+        if self.iteration == 0:
+            return float("inf")
+        change = 0.0
+        for i, plan in self._step_latest.items():
+            prev = self._prev_round.get(i)
+            if prev is None:
+                return float("inf")
+            change = max(change, float(np.max(np.abs(plan.z - prev.z))), float(np.max(np.abs(plan.v - prev.v))))
+        return change
+
+    # ------------------------------------------------------------------ step end
+    def _finalise_step(self) -> list:
+        system, M = self.system, self.system.M
+        x = self.plant.x.copy()
+        x_parts = system.split_state(x)
+        alpha_parts = system.split_state(self.alpha)
+        u_parts, eta_parts, J_agents = [], [], []
+        status, fallback, reasons, solve_time, qp_iters, latency, plans_z, plans_v = ([] for _ in range(8))
+        for i in range(M):
+            sub = system.subsystems[i]
+            plan = self._step_latest.get(i)
+            msg = self._round_status.get(i)
+            status.append(msg.status if msg is not None else "missed")
+            solve_time.append(msg.solve_time if msg is not None else float("nan"))
+            qp_iters.append(msg.qp_iterations if msg is not None else 0)
+            latency.append(msg.sent_at if msg is not None else float("nan"))
+            if plan is not None:
+                u_parts.append(plan.v[0].copy())
+                eta_parts.append(plan.z[-1].copy())
+                J_agents.append(float(msg.cost) if msg is not None and msg.status in SOLVED_STATUSES
+                                else self._candidate_cost(i, plan))
+                self.last_plan[i] = plan
+                fallback.append(False)
+                reasons.append("")
+                plans_z.append(plan.z)
+                plans_v.append(plan.v)
+            else:
+                last = self.last_plan[i]
+                u_c = shifted_input(last, self.k, x_parts[i], self._gamma[i], self._K[i])
+                u_parts.append(project_onto(sub.input_set, u_c))
+                eta_parts.append(alpha_parts[i].copy())
+                J_agents.append(self._candidate_cost(i, last) if last is not None else float("nan"))
+                fallback.append(True)
+                reasons.append("missed" if msg is None else f"qp {msg.status}")
+                z_c, v_c = self._candidate(i, last, x_parts[i])
+                plans_z.append(z_c)
+                plans_v.append(v_c)
+        u = np.concatenate(u_parts)
+        eta = np.concatenate(eta_parts)
+        alpha_next = self._AK @ eta
+        beta_next = self.design.terminal.sigma(alpha_next)
+        S = float(sum(x_parts[i] @ x_parts[i] / len(system.neighbours[i]) for i in range(M)))
+        x_next = self.plant.step(u)
+        record = StepRecord(
+            k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta, x_next=x_next.copy(),
+            alpha_next=alpha_next, beta_next=beta_next, J=float(np.sum(J_agents)), J_agents=J_agents, S=S,
+            rounds=self.iteration + 1, max_change=self._max_change, status=status, fallback=fallback,
+            fallback_reason=reasons, solve_time=solve_time, qp_iterations=qp_iters, plans_z=plans_z,
+            plans_v=plans_v, latency=latency)
+        actions: list = [StepCompleted(record)]
+        self.alpha, self.beta = alpha_next, beta_next
+        self.k += 1
+        self.iteration = 0
+        self._step_latest = {}
+        self._prev_round = {}
+        self._round_status = {}
+        if self.k >= self.options.steps:
+            self.finished = True
+            actions.append(RunFinished("finished"))
+            return actions
+        actions.extend(self._release_round())
+        return actions
+
+    def _candidate(self, i: int, last: Plan | None, x_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The shifted candidate plan of agent i at this step, shapes (N+1, n_i), (N, m_i)."""
+        sub = self.system.subsystems[i]
+        if last is None:
+            z = [x_i]
+            for _ in range(self.N):
+                z.append(self._gamma[i] @ z[-1])
+            z = np.array(z)
+            return z, (self._K[i] @ z[:-1].T).T
+        shift = self.k - last.k
+        z, v = continued(last, shift + self.N, self._gamma[i], self._K[i])
+        return z[shift:], v[shift:]
+
+    def _candidate_cost(self, i: int, plan: Plan) -> float:
+        sub = self.system.subsystems[i]
+        shift = self.k - plan.k
+        z, v = continued(plan, shift + self.N, self._gamma[i], self._K[i])
+        z, v = z[shift:], v[shift:]
+        P = self.design.gains.P[i]
+        stage = np.einsum("ti,ij,tj->", z[:-1], sub.Q, z[:-1]) + np.einsum("ti,ij,tj->", v, sub.R, v)
+        return float(stage + z[-1] @ P @ z[-1])

@@ -1,0 +1,181 @@
+"""The plant process's protocol logic: readiness, releases, deadlines, records, stop.
+
+Hosts the pure Coordinator on a bus. In ``realtime`` mode step k is released at
+``t0 + k dt`` on the bus clock and each round has a deadline; in ``lockstep`` the next step
+follows as soon as the last plan is in.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from dmpc.bus import keys
+from dmpc.bus.codec import DecodeError, decode, encode
+from dmpc.bus.interface import Bus
+from dmpc.bus.messages import PlanMessage, Ready, Stop
+from dmpc.plant.barrier import Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, StepRecord
+
+log = logging.getLogger("dmpc.plant")
+
+
+class PlantNode:
+    """Coordinator + plant on a bus.
+
+    Parameters
+    ----------
+    bus : Bus
+    coordinator : Coordinator
+    design_digest : str
+        Every agent's Ready must carry the same digest.
+    on_step : callable StepRecord -> None
+        Called for every completed step (the run folder appends it).
+    mode : {"lockstep", "realtime"}
+    dt : float
+        Step period in realtime mode (seconds).
+    deadline : float or None
+        Seconds after a round's release after which missing plans are missed.
+    """
+
+    def __init__(self, bus: Bus, coordinator: Coordinator, design_digest: str,
+                 on_step: Callable[[StepRecord], None], mode: str = "lockstep", dt: float = 0.1,
+                 deadline: float | None = None) -> None:
+        self.bus = bus
+        self.coordinator = coordinator
+        self.run_id = coordinator.run_id
+        self.names = coordinator.names
+        self.design_digest = design_digest
+        self.on_step = on_step
+        self.mode = mode
+        self.dt = dt
+        self.deadline = deadline
+        self.ready: set[str] = set()
+        self.alive: set[str] = set()
+        self.started = False
+        self.finished = False
+        self.failure = ""
+        self.rejected: dict[str, int] = {}
+        self._t0 = 0.0
+        self._round_opened_at = 0.0
+        self._step_opened_at = 0.0
+        self._received_at: dict[str, float] = {}
+        self._sent_at: dict[str, float] = {}
+        bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan)
+        bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
+        bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
+
+    def announce(self) -> None:
+        self.bus.declare_alive(keys.alive(self.run_id, "plant"))
+
+    # ------------------------------------------------------------------ receive
+    def _reject(self, sender: str, why: str) -> None:
+        count = self.rejected.get(sender, 0) + 1
+        self.rejected[sender] = count
+        if count == 1 or count % 1000 == 0:
+            log.warning("plant: dropped message from %s (%s); %d dropped so far", sender, why, count)
+
+    def _on_ready(self, key: str, payload: bytes) -> None:
+        name = keys.last_chunk(key)
+        try:
+            msg = decode(payload)
+        except DecodeError as exc:
+            self._reject(name, str(exc))
+            return
+        if not isinstance(msg, Ready) or msg.run != self.run_id or msg.sender != name or name not in self.names:
+            self._reject(name, "invalid ready message")
+            return
+        if msg.design_digest != self.design_digest:
+            self.fail(f"agent {name} uses a different design (digest {msg.design_digest} != {self.design_digest}); "
+                      "give every process the same scenario")
+            return
+        self.ready.add(name)
+        if self.started:
+            self.coordinator.on_agent_back(name)
+        else:
+            self._maybe_start()
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        role = keys.last_chunk(key)
+        if not role.startswith("agent-"):
+            return
+        name = role[len("agent-"):]
+        if name not in self.names:
+            return
+        if alive:
+            self.alive.add(name)
+            return
+        self.alive.discard(name)
+        self.ready.discard(name)
+        if self.started and not self.finished:
+            log.warning("plant: agent %s lost at step %d; applying its fallback", name, self.coordinator.k)
+            self._carry_out(self.coordinator.on_agent_lost(name))
+
+    def _on_plan(self, key: str, payload: bytes) -> None:
+        name = keys.last_chunk(key)
+        try:
+            msg = decode(payload)
+        except DecodeError as exc:
+            self._reject(name, str(exc))
+            return
+        if not isinstance(msg, PlanMessage) or msg.sender != name:
+            self._reject(name, "not a plan from its key's agent")
+            return
+        problem = self.coordinator.check(msg)
+        if problem is not None:
+            if problem not in ("stale",):  # late plans after a deadline are normal in realtime
+                self._reject(name, problem)
+            return
+        now = self.bus.now()
+        actions = self.coordinator.on_plan(msg)
+        self._received_at[name] = now
+        self._sent_at[name] = msg.sent_at
+        self._carry_out(actions)
+
+    # ------------------------------------------------------------------ act
+    def _maybe_start(self) -> None:
+        if not self.started and self.ready >= set(self.names):
+            self.started = True
+            self._t0 = self.bus.now()
+            self._step_opened_at = self._t0
+            self._carry_out(self.coordinator.start())
+
+    def _carry_out(self, actions: list) -> None:
+        for n, action in enumerate(actions):
+            if isinstance(action, SendRelease):
+                rel = action.release
+                if self.mode == "realtime" and rel.iteration == 0 and rel.k > 0:
+                    wait = self._t0 + rel.k * self.dt - self.bus.now()
+                    if wait > 0:
+                        self.bus.call_later(wait, lambda rest=actions[n:]: self._carry_out(rest))
+                        return
+                self.bus.publish(keys.release(self.run_id, rel.target), encode(rel))
+            elif isinstance(action, RoundOpened):
+                self._round_opened_at = self.bus.now()
+                if action.iteration == 0:
+                    self._step_opened_at = self._round_opened_at
+                if self.deadline is not None:
+                    k, r = action.k, action.iteration
+                    self.bus.call_later(self.deadline, lambda k=k, r=r: self._carry_out(self.coordinator.on_deadline(k, r)))
+            elif isinstance(action, StepCompleted):
+                rec = action.record
+                rec.step_time = self.bus.now() - self._step_opened_at
+                rec.latency = [self._received_at.get(name, float("nan")) - self._sent_at.get(name, float("nan"))
+                               if rec.status[i] != "missed" else float("nan") for i, name in enumerate(self.names)]
+                self.on_step(rec)
+            elif isinstance(action, RunFinished):
+                self._stop(action.reason)
+
+    def _stop(self, reason: str) -> None:
+        self.finished = True
+        msg = Stop(run=self.run_id, k=self.coordinator.k, reason=reason)
+        self.bus.publish(keys.control(self.run_id), encode(msg))
+
+    def fail(self, reason: str) -> None:
+        """Abort the run: tell every agent and stop."""
+        if not self.finished:
+            self.failure = reason
+            self._stop(f"failed: {reason}")
+
+    def abort(self, reason: str = "aborted") -> None:
+        if not self.finished:
+            self.failure = reason
+            self._stop(reason)
