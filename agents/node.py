@@ -62,16 +62,58 @@ class AgentNode:
         self.rejected: dict[str, int] = {}
         self.solves = 0
         self.stale_assumptions = 0
+        self.peers_alive: set[str] = set()
+        self.plant_seen = False
+        self.plant_lost = False
+        self.ready_sent = 0
+        self._released = False
+        self._first_k: int | None = None
+        self._ready_timer: Timer | None = None
+        self._repeat = 0.5
         bus.subscribe(keys.release(run_id, self.name), self._on_release)
         for name in self.neighbour_names:
             bus.subscribe(keys.plan(run_id, name), self._on_plan)
         bus.subscribe(keys.control(run_id), self._on_control)
 
-    def announce(self) -> None:
-        """Declare liveliness and tell the plant this agent is ready."""
+    def announce(self, repeat: float = 0.5) -> None:
+        """Hold a liveliness token and tell the plant this agent is ready.
+
+        The token is declared after every subscriber (declarations travel in order, so whoever
+        sees the token can reach the subscribers). ``Ready`` goes out once the plant and every
+        neighbour are alive, and again every ``repeat`` seconds until the first release comes,
+        in case the plant subscribed after the first one.
+        """
+        self.bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
         self.bus.declare_alive(keys.alive(self.run_id, keys.agent_role(self.name)))
+        self._repeat = repeat
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        role = keys.last_chunk(key)
+        if alive:
+            self.peers_alive.add(role)
+            if role == "plant":
+                self.plant_seen = True
+            self._maybe_ready()
+        else:
+            self.peers_alive.discard(role)
+            if role == "plant" and self.plant_seen and not self.stopped:
+                self.plant_lost = True
+
+    def _maybe_ready(self) -> None:
+        if self._released or self._ready_timer is not None:
+            return
+        needed = {"plant"} | {keys.agent_role(n) for n in self.neighbour_names}
+        if needed <= self.peers_alive:
+            self._send_ready()
+
+    def _send_ready(self) -> None:
+        self._ready_timer = None
+        if self._released or self.stopped:
+            return
         msg = Ready(run=self.run_id, sender=self.name, design_digest=self.design_digest, pid=os.getpid())
         self.bus.publish(keys.ready(self.run_id, self.name), encode(msg))
+        self.ready_sent += 1
+        self._ready_timer = self.bus.call_later(self._repeat, self._send_ready)
 
     # ------------------------------------------------------------------ receive
     def _reject(self, sender: str, why: str) -> None:
@@ -100,6 +142,9 @@ class AgentNode:
         if msg is not None and msg.sender == PLANT:
             self.stopped = True
             self.stop_reason = msg.reason
+            if self._ready_timer is not None:
+                self._ready_timer.cancel()
+                self._ready_timer = None
 
     def _on_release(self, key: str, payload: bytes) -> None:
         msg = self._decode(key, payload, Release)
@@ -111,6 +156,12 @@ class AgentNode:
             return
         if (msg.k, msg.iteration) <= self._last_done:
             return  # duplicate or stale
+        if not self._released:
+            self._released = True
+            self._first_k = msg.k
+            if self._ready_timer is not None:
+                self._ready_timer.cancel()
+                self._ready_timer = None
         self.pending = msg
         self._cancel_wait()
         self._try_solve()
@@ -169,7 +220,8 @@ class AgentNode:
             return
         plans = {}
         for name, ref in release.assumed.items():
-            found, plan = self._lookup(name, ref, exact)
+            # plans published before this agent (re)joined can never arrive: don't wait for them
+            found, plan = self._lookup(name, ref, exact and (ref is None or ref[0] >= (self._first_k or 0)))
             if not found:
                 self._arm_wait()
                 return

@@ -11,7 +11,7 @@ from dmpc.design.terminal_set import TerminalSet, maximal_admissible_set
 from dmpc.design.tubes import RevisionBound, Tightening, robust_tightening
 from dmpc.system import CoupledSystem
 
-__all__ = ["Design", "DesignError", "GainDesign", "RevisionBound", "TerminalSet", "Tightening", "design_system"]
+__all__ = ["Design", "DesignError", "design_from_json", "GainDesign", "RevisionBound", "TerminalSet", "Tightening", "design_system"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,37 @@ def design_system(system: CoupledSystem, *, gains: str, horizon: int, alpha0: np
     else:
         raise DesignError(f"unknown gain design method {gains!r} (expected lmi, lqr or given)")
     terminal = maximal_admissible_set(system, g.K)
+    return _assemble(system, g, terminal, horizon, alpha0, beta0, tube, revision_bounds)
+
+
+def design_from_json(system: CoupledSystem, data: dict, *, horizon: int, alpha0: np.ndarray, beta0: float,
+                     tube: str = "none", revision_bounds: dict[int, RevisionBound] | None = None) -> Design:
+    """Rebuild a design from ``design.json`` content without re-solving the LMI or the LPs.
+
+    The gains are verified again (cheap), the tubes recomputed; DesignError if the file does
+    not fit the system.
+    """
+    try:
+        K = [np.asarray(k, dtype=float) for k in data["K"]]
+        P = [np.asarray(p, dtype=float) for p in data["P"]]
+        omega = np.asarray(data["omega"], dtype=float)
+        t_star = int(data["t_star"])
+        method, objective = str(data["gains_method"]), str(data.get("objective", ""))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DesignError(f"design file: missing or malformed entry ({exc})") from None
+    shapes_ok = (len(K) == system.M and len(P) == system.M and omega.ndim == 2 and omega.shape[1] == system.n
+                 and all(K[i].shape == (s.m, s.n) and P[i].shape == (s.n, s.n) for i, s in enumerate(system.subsystems)))
+    if not shapes_ok:
+        raise DesignError("design file: K, P or omega do not match the scenario's dimensions")
+    if int(data.get("horizon", horizon)) != horizon:
+        raise DesignError(f"design file: made for horizon {data.get('horizon')}, the scenario has {horizon}")
+    g = verify_gains(system, K, P, method, objective)
+    terminal = TerminalSet(omega=omega, t_star=t_star)
+    return _assemble(system, g, terminal, horizon, alpha0, beta0, tube, revision_bounds)
+
+
+def _assemble(system: CoupledSystem, g: GainDesign, terminal: TerminalSet, horizon: int, alpha0: np.ndarray,
+              beta0: float, tube: str, revision_bounds: dict[int, RevisionBound] | None) -> Design:
     sigma0 = terminal.sigma(alpha0)
     if beta0 > sigma0 + 1e-12:
         raise DesignError(f"terminal: beta0 = {beta0:.6g} exceeds sigma(alpha0) = {sigma0:.6g}: the initial "

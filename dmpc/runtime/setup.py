@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dmpc.design import Design, RevisionBound, design_system
+from dmpc.design import Design, design_from_json, design_system
 from dmpc.plant.barrier import ProtocolOptions
-from dmpc.scenario import Scenario, alpha0_vector, build_system, given_gains
+from dmpc.scenario import Scenario, alpha0_vector, build_system, given_gains, revision_bounds
 from dmpc.system import CoupledSystem
 
 
@@ -43,23 +43,26 @@ class Prepared:
     def names(self) -> list[str]:
         return [s.name for s in self.system.subsystems]
 
+    def design_json(self) -> dict:
+        """The content of ``design.json`` (the design plus its digest)."""
+        data = self.design.to_json()
+        data["digest"] = self.digest
+        return data
+
     @property
     def plan_wait(self) -> float | None:
         """How long an agent waits for a referenced neighbour plan (half the deadline)."""
         return None if self.deadline is None else 0.5 * self.deadline
 
 
-def design_for(scenario: Scenario, system: CoupledSystem) -> Design:
-    """Run the offline design the scenario asks for (DesignError on failure)."""
+def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | None = None) -> Design:
+    """Run the offline design the scenario asks for, or rebuild it from ``design.json`` content."""
+    kwargs = dict(horizon=scenario.horizon, alpha0=alpha0_vector(scenario, system), beta0=scenario.terminal.beta0,
+                  tube=scenario.options.tube, revision_bounds=revision_bounds(scenario))
+    if design_data is not None:
+        return design_from_json(system, design_data, **kwargs)
     given = given_gains(scenario) if scenario.design.gains == "given" else None
-    bounds = {}
-    for i, spec in enumerate(scenario.resolved_subsystems()):
-        if spec.revision_bound is not None:
-            bounds[i] = RevisionBound(np.asarray(spec.revision_bound.state, float),
-                                      np.asarray(spec.revision_bound.input, float))
-    return design_system(system, gains=scenario.design.gains, horizon=scenario.horizon,
-                         alpha0=alpha0_vector(scenario, system), beta0=scenario.terminal.beta0, given=given,
-                         tube=scenario.options.tube, revision_bounds=bounds)
+    return design_system(system, gains=scenario.design.gains, given=given, **kwargs)
 
 
 def design_digest(design: Design) -> str:
@@ -67,10 +70,11 @@ def design_digest(design: Design) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def prepare(scenario: Scenario, steps: int | None = None) -> Prepared:
-    """Build the system and run the design; ``steps`` overrides the scenario's."""
+def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | None = None) -> Prepared:
+    """Build the system and the design; ``steps`` overrides the scenario's; ``design_data``
+    (``design.json`` content) skips the offline solves."""
     system = build_system(scenario)
-    design = design_for(scenario, system)
+    design = design_for(scenario, system, design_data)
     opts = scenario.options
     protocol = ProtocolOptions(steps=steps or scenario.steps, iterations=opts.iterations, tolerance=opts.tolerance,
                                initial_iterations=opts.initial_iterations, initial_tolerance=opts.initial_tolerance)

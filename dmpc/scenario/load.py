@@ -61,26 +61,31 @@ class _Loader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+# YAML 1.1 (PyYAML) reads 1e-6 as a string; accept YAML 1.2 exponent floats without a dot as well.
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
 def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """``line L, column C: problem`` on one line; python/custom tags get a clear explanation."""
     mark = getattr(exc, "problem_mark", None)
-    problem = getattr(exc, "problem", None) or str(exc)
+    problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+    tag = re.search(r"for the tag '([^']*)'", problem)
+    if isinstance(exc, yaml.constructor.ConstructorError) and tag:
+        name = tag.group(1).replace("tag:yaml.org,2002:", "!!")
+        problem = f"YAML tag '{name}' is not allowed (plain YAML only: no python/ or custom tags)"
     where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    return where + " ".join(str(problem).split())
+    return where + problem
 
 
 def _parse_yaml(text: str, source: str) -> Any:
     try:
         return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
     except yaml.constructor.ConstructorError as exc:
-        mark = exc.problem_mark
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-        tag = re.search(r"for the tag '([^']*)'", str(exc.problem))
-        if tag:
-            name = tag.group(1).replace("tag:yaml.org,2002:", "!!")
-            problem = f"YAML tag '{name}' is not allowed (plain YAML only: no python/ or custom tags)"
-        else:
-            problem = " ".join(str(exc.problem).split())
-        raise ScenarioError(f"{source}: {where}{problem}") from None
+        raise ScenarioError(f"{source}: {_yaml_problem(exc)}") from None
     except yaml.YAMLError as exc:
         raise ScenarioError(f"{source}: not valid YAML ({_yaml_problem(exc)})") from None
     except RecursionError:
@@ -336,7 +341,12 @@ def _apply_override(data: dict, key: str, value: object) -> str:
         if not nxt:
             where = _format_loc(tuple(segs[:depth + 1]))
             fields = _field_names(candidates)
-            hint = f"; fields here: {', '.join(fields)}" if fields else ""
+            if fields:
+                hint = f"; fields here: {', '.join(fields)}"
+            elif isinstance(seg, str) and any(get_origin(c) in (list, tuple) for c in candidates):
+                hint = "; a list needs an index here, e.g. subsystems[0].x0"
+            else:
+                hint = ""
             raise ScenarioError(f"{where}: no such field in the scenario schema (override '{key}'){hint}",
                                 field=where)
         candidates = nxt
@@ -391,7 +401,7 @@ def parse_override(text: str) -> tuple[str, object]:
     try:
         value = yaml.load(raw, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
-        raise ScenarioError(f"{key}: override value {raw!r} is not plain YAML ({_yaml_problem(exc)})",
+        raise ScenarioError(f"{key}: override value {raw!r} is not valid YAML ({_yaml_problem(exc)})",
                             field=key) from None
     except RecursionError:
         raise ScenarioError(f"{key}: override value nested too deeply", field=key) from None

@@ -16,7 +16,7 @@ import re
 from typing import Annotated, Literal, Optional, Union
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema, model_validator
 
 __all__ = [
     "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "FamilyCouplingSpec", "FaultsSpec",
@@ -119,8 +119,9 @@ def _subsystem_name(value: object) -> str:
 Matrix = Annotated[list[list[float]], BeforeValidator(_matrix)]
 Vector = Annotated[list[float], BeforeValidator(lambda v: _vector(v, allow_inf=False))]
 BoundVector = Annotated[list[float], BeforeValidator(lambda v: _vector(v, allow_inf=True))]
-Name = Annotated[str, BeforeValidator(_subsystem_name)]
-Endpoint = Annotated[str, BeforeValidator(_name)]
+_NAME_SCHEMA = WithJsonSchema({"anyOf": [{"type": "string", "pattern": _NAME_RE.pattern}, {"type": "integer"}]})
+Name = Annotated[str, BeforeValidator(_subsystem_name), _NAME_SCHEMA]
+Endpoint = Annotated[str, BeforeValidator(_name), _NAME_SCHEMA]
 PosInt = Annotated[int, Field(strict=True, ge=1)]
 PosFloat = Annotated[float, Field(strict=True, gt=0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)]
@@ -456,7 +457,8 @@ class Scenario(_Model):
         default_factory=list, description="Extra undirected communication edges [a, b] without dynamic coupling.")
     horizon: PosInt = Field(10, description="Prediction horizon N, >= 1.")
     steps: PosInt = Field(30, description="Number of closed-loop steps to simulate, >= 1.")
-    seed: Annotated[int, Field(strict=True)] = Field(0, description="Seed of every random choice (faults).")
+    seed: Annotated[int, Field(strict=True, ge=0)] = Field(
+        0, description="Seed (>= 0) of every random choice (fault injection).")
     design: DesignSpec = Field(default_factory=DesignSpec, description="Offline gain design.")
     terminal: TerminalSpec = Field(default_factory=TerminalSpec, description="Initial terminal box.")
     options: OptionsSpec = Field(default_factory=OptionsSpec, description="Algorithm and runtime options.")
@@ -475,10 +477,15 @@ class Scenario(_Model):
         """Where subsystem ``index`` is written in the file (for error messages)."""
         return "family.subsystem" if self.family is not None else f"subsystems[{index}]"
 
+    @model_validator(mode="before")
+    @classmethod
+    def _one_source(cls, data: object) -> object:
+        if isinstance(data, dict) and data.get("subsystems") is not None and data.get("family") is not None:
+            raise SpecError("family", "give either 'subsystems' or 'family', not both")
+        return data
+
     @model_validator(mode="after")
     def _cross_checks(self) -> "Scenario":
-        if self.subsystems is not None and self.family is not None:
-            raise SpecError("family", "give either 'subsystems' or 'family', not both")
         if self.subsystems is None and self.family is None:
             raise SpecError("subsystems", "required (or give 'family' to generate the subsystems)")
         subs = self.resolved_subsystems()
