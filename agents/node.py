@@ -253,5 +253,10 @@ class AgentNode:
             self._wait_timer = None
 
     @property
+    def released(self) -> bool:
+        """True once the first release arrived (the run has started for this agent)."""
+        return self._released
+
+    @property
     def rejected_total(self) -> int:
         return int(np.sum(list(self.rejected.values()))) if self.rejected else 0

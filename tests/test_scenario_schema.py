@@ -329,3 +329,14 @@ def test_random_valid_scenarios_build(data):
     for c in data["couplings"]:
         i, j = int(c["target"]), int(c["source"])
         assert np.array_equal(system.A[system.xs(i), system.xs(j)], c["A"])
+
+
+def test_revision_bounds_by_index():
+    from dmpc.scenario import revision_bounds
+
+    bound = {"state": [0.1, 0.2], "input": [0.3]}
+    scn = load_scenario(CHAIN, {"family.M": 3, "options.tube": "robust", "family.subsystem.revision_bound": bound})
+    bounds = revision_bounds(scn)
+    assert sorted(bounds) == [0, 1, 2]
+    assert np.array_equal(bounds[1].state, [0.1, 0.2]) and np.array_equal(bounds[1].input, [0.3])
+    assert revision_bounds(load_scenario(PAPER)) == {}

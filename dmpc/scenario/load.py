@@ -442,5 +442,6 @@ def dump_resolved(scn: Scenario) -> str:
     for key in ("subsystems", "family"):
         if data[key] is None:
             del data[key]
-    header = f"# Resolved scenario '{scn.name}': every field with its value, defaults filled in.\n"
-    return header + yaml.dump(data, Dumper=_Dumper, sort_keys=False, allow_unicode=True, width=110)
+    header = "# Resolved scenario: every field with its value, defaults filled in.\n"
+    # allow_unicode=False: PyYAML cannot read back some characters it writes raw (e.g. U+0085)
+    return header + yaml.dump(data, Dumper=_Dumper, sort_keys=False, allow_unicode=False, width=110)

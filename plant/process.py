@@ -1,0 +1,53 @@
+"""``dmpc plant``: the plant simulator and step barrier as a process on the Zenoh bus."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dmpc.bus.interface import Bus
+from dmpc.plant.barrier import Coordinator
+from dmpc.plant.dynamics import Plant
+from dmpc.plant.node import PlantNode
+from dmpc.records.session import RunRecorder
+from dmpc.runtime.setup import Prepared
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_INTERRUPTED = 130
+
+
+@dataclass(frozen=True)
+class PlantOutcome:
+    code: int
+    message: str
+    summary: dict | None
+
+
+def run_plant(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, startup_timeout: float,
+              runtime: str = "multi-process") -> PlantOutcome:
+    """Wait for every agent, step the run to the end, write the records.
+
+    Ctrl-C (or SIGTERM) stops the agents and keeps every completed step in the run folder.
+    """
+    coordinator = Coordinator(prepared.system, prepared.design, Plant(prepared.system), prepared.protocol, run_id)
+    node = PlantNode(bus, coordinator, prepared.digest, recorder.on_step, mode=prepared.mode, dt=prepared.dt,
+                     deadline=prepared.deadline)
+    node.announce()
+    try:
+        if not bus.run(until=lambda: node.started or node.finished, timeout=startup_timeout):
+            missing = sorted(set(prepared.names) - node.ready)
+            alive = sorted(node.alive)
+            reason = (f"plant: agents {', '.join(missing)} not ready within {startup_timeout:g} s "
+                      f"(alive: {', '.join(alive) or 'none'}; run id '{run_id}')")
+            node.fail(reason)
+            summary = recorder.complete(runtime=runtime, failure=reason)
+            return PlantOutcome(EXIT_FAILED, reason, summary)
+        bus.run(until=lambda: node.finished)
+    except KeyboardInterrupt:
+        node.abort("aborted")
+        summary = recorder.complete(runtime=runtime, aborted="interrupted", rejected=node.rejected)
+        return PlantOutcome(EXIT_INTERRUPTED, f"plant: interrupted after {coordinator.k} steps", summary)
+    summary = recorder.complete(runtime=runtime, failure=node.failure or None, rejected=node.rejected,
+                                duplicates=coordinator.duplicates)
+    if node.failure:
+        return PlantOutcome(EXIT_FAILED, f"plant: {node.failure}", summary)
+    return PlantOutcome(EXIT_OK, f"plant: finished {coordinator.k} steps", summary)
