@@ -178,6 +178,11 @@ class AgentNode:
             return "alpha has the wrong shape"
         if set(msg.assumed) != set(self.neighbour_names):
             return "assumed plans do not match the neighbours"
+        for name, (z, v) in msg.provided.items():
+            j = self.neighbour_names.get(name)
+            if j is None or z.shape != (self.controller.N + 1, self.system.subsystems[j].n) \
+                    or v.shape != (self.controller.N, self.system.subsystems[j].m):
+                return f"provided plan of {name} does not fit"
         return None
 
     def _on_plan(self, key: str, payload: bytes) -> None:
@@ -220,6 +225,10 @@ class AgentNode:
             return
         plans = {}
         for name, ref in release.assumed.items():
+            if name in release.provided and ref is not None:
+                z, v = release.provided[name]
+                plans[self.neighbour_names[name]] = Plan(ref[0], ref[1], z, v)
+                continue
             # plans published before this agent (re)joined can never arrive: don't wait for them
             found, plan = self._lookup(name, ref, exact and (ref is None or ref[0] >= (self._first_k or 0)))
             if not found:

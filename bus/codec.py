@@ -39,8 +39,8 @@ def _to_wire(value):
         return {"dtype": "<f8", "shape": list(arr.shape), "data": arr.tobytes()}
     if isinstance(value, dict):
         return {k: _to_wire(v) for k, v in value.items()}
-    if isinstance(value, tuple):
-        return list(value)
+    if isinstance(value, (tuple, list)):
+        return [_to_wire(v) for v in value]
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
     return value
@@ -135,10 +135,22 @@ def _parse_release(b: dict) -> Release:
     beta = _float(b, "beta")
     if beta < 0:
         raise DecodeError("beta: negative")
+    provided = b["provided"]
+    if not isinstance(provided, dict) or len(provided) > 1024:
+        raise DecodeError("provided: expected a map name -> [z, v]")
+    parsed_provided = {}
+    for key, pair in provided.items():
+        _str(key, "provided key")
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise DecodeError(f"provided[{key}]: expected [z, v]")
+        z, v = _array(pair[0], f"provided[{key}].z", 2), _array(pair[1], f"provided[{key}].v", 2)
+        if z.shape[0] != v.shape[0] + 1:
+            raise DecodeError(f"provided[{key}]: z needs one row more than v")
+        parsed_provided[key] = (z, v)
     return Release(run=_str(b["run"], "run"), k=_int(b, "k"), iteration=_int(b, "iteration"),
                    target=_str(b["target"], "target"), states=parsed_states,
                    alpha=_array(b["alpha"], "alpha", 1), beta=beta, assumed=parsed_assumed,
-                   sender=_str(b["sender"], "sender"))
+                   sender=_str(b["sender"], "sender"), provided=parsed_provided)
 
 
 def _parse_plan(b: dict) -> PlanMessage:

@@ -10,7 +10,7 @@ Agents are named by the scenario's subsystem names; the plant is ``"plant"``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -31,6 +31,9 @@ class Release:
     assumed : dict name -> (k', round') or None
         For each neighbour j != i: build its assumed trajectory from its plan of (k', round');
         None means the decoupled K-rollout from x_j(k).
+    provided : dict name -> (z, v)
+        Plans supplied by the coordinator itself (the centralised seed at k = 0); they stand for
+        the neighbours' plans named in ``assumed``. Usually empty.
     """
 
     run: str
@@ -42,6 +45,7 @@ class Release:
     beta: float
     assumed: dict[str, tuple[int, int] | None]
     sender: str = PLANT
+    provided: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,8 @@ def _values_equal(x, y) -> bool:
     if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
         return (isinstance(x, np.ndarray) and isinstance(y, np.ndarray) and x.shape == y.shape
                 and x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True))
+    if isinstance(x, (tuple, list)):
+        return isinstance(y, (tuple, list)) and len(x) == len(y) and all(_values_equal(a, b) for a, b in zip(x, y))
     if isinstance(x, dict):
         return isinstance(y, dict) and x.keys() == y.keys() and all(_values_equal(x[k], y[k]) for k in x)
     if isinstance(x, float) and isinstance(y, float) and np.isnan(x) and np.isnan(y):

@@ -29,6 +29,16 @@ class InputError(Exception):
     """A usage or input error: exit code 2, one line."""
 
 
+def _default_out(out: Path | None, scenario_name: str) -> Path:
+    if out is not None:
+        return out
+    import re
+    import time
+
+    safe = re.sub(r"[^A-Za-z0-9_.-]", "-", scenario_name)[:40]
+    return Path("runs") / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
 def _load(path: Path, overrides: list[str] | None, steps: int | None = None):
     pairs = {}
     for text in overrides or []:
@@ -76,7 +86,7 @@ def design(scenario: ScenarioArg, set_: SetOpt = None,
 
 @app.command()
 def simulate(scenario: ScenarioArg,
-             out: Annotated[Path, typer.Option("--out", help="Run folder to write (created).")],
+             out: Annotated[Optional[Path], typer.Option("--out", help="Run folder to write (default: runs/<scenario>-<time>).")] = None,
              steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps to run (default: the scenario's).")] = None,
              set_: SetOpt = None,
              quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False) -> None:
@@ -86,6 +96,7 @@ def simulate(scenario: ScenarioArg,
     from dmpc.records.session import RunRecorder
 
     prepared = _prepare(scenario, set_, steps)
+    out = _default_out(out, prepared.scenario.name)
     with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
         run = run_inprocess(prepared, recorder.on_step)
         summary = recorder.complete(method="tv-box", runtime="in-process",
@@ -250,7 +261,7 @@ def router(listen: ListenOpt = None,
 
 @app.command()
 def run(scenario: ScenarioArg,
-        out: Annotated[Path, typer.Option("--out", help="Run folder to write (created).")],
+        out: Annotated[Optional[Path], typer.Option("--out", help="Run folder to write (default: runs/<scenario>-<time>).")] = None,
         steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps to run (default: the scenario's).")] = None,
         run_id: RunIdOpt = None, startup_timeout: StartupOpt = 60.0,
         quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
@@ -263,6 +274,7 @@ def run(scenario: ScenarioArg,
     from dmpc.runtime.setup import prepare
 
     prepared = prepare(_load(scenario, set_, steps))
+    out = _default_out(out, prepared.scenario.name)
     rid = _run_id(run_id or f"{prepared.scenario.name}-{secrets.token_hex(4)}", prepared)
     result = launch(prepared, out, rid, startup_timeout=startup_timeout, show_progress=not quiet)
     if result.summary is not None:

@@ -16,6 +16,7 @@ import numpy as np
 
 from dmpc.bus.messages import PlanMessage, Release
 from dmpc.design import Design
+from dmpc.mpc_qp import plan_cost
 from dmpc.plant.dynamics import Plant
 from dmpc.system import CoupledSystem, project_onto
 from dmpc.trajectories import Plan, continued, shifted_input
@@ -86,6 +87,7 @@ class StepRecord:
     plans_v: list[np.ndarray]
     latency: list[float] = field(default_factory=list)
     step_time: float = float("nan")
+    note: str = ""
 
 
 class Coordinator:
@@ -129,6 +131,8 @@ class Coordinator:
         self._max_change = float("nan")
         self.rejected: dict[str, int] = {}
         self.duplicates = 0
+        self._provided: dict[int, Plan] = {}
+        self._note = ""
 
     # ------------------------------------------------------------------ inputs
     def start(self) -> list:
@@ -207,9 +211,11 @@ class Coordinator:
                     continue
                 ref = self._reference(j)
                 assumed[self.names[j]] = None if ref is None else (ref.k, ref.iteration)
+            provided = {self.names[j]: (self._provided[j].z, self._provided[j].v)
+                        for j in nb if j != i and j in self._provided}
             release = Release(run=self.run_id, k=self.k, iteration=self.iteration, target=name,
                               states={self.names[j]: x_parts[j].copy() for j in nb},
-                              alpha=alpha_parts[i].copy(), beta=self.beta, assumed=assumed)
+                              alpha=alpha_parts[i].copy(), beta=self.beta, assumed=assumed, provided=provided)
             actions.append(SendRelease(release))
         actions.append(RoundOpened(self.k, self.iteration))
         actions.extend(self._maybe_close_round())
@@ -225,10 +231,14 @@ class Coordinator:
         if len(self._round) + len(self._missed - set(self._round)) < self.system.M:
             return []
         self._prev_round = dict(self._step_latest)
+        self._provided = {}
         for i, msg in self._round.items():
             self._round_status[i] = msg
             if msg.status in SOLVED_STATUSES:
                 self._step_latest[i] = Plan(msg.k, msg.iteration, msg.z, msg.v)
+        infeasible = [self.names[i] for i, msg in self._round.items() if msg.status not in SOLVED_STATUSES]
+        if self.k == 0 and self.iteration == 0 and infeasible and not self._missed:
+            self._seed_from_centralized(infeasible)
         rounds_allowed = self.options.initial_iterations if self.k == 0 else self.options.iterations
         tol = self.options.initial_tolerance if self.k == 0 else self.options.tolerance
         change = self._round_change()
@@ -238,6 +248,23 @@ class Coordinator:
             self.iteration += 1
             return self._release_round()
         return self._finalise_step()
+
+    def _seed_from_centralized(self, infeasible: list[str]) -> None:
+        """Replace the first round's plans by the centralised QP's plan (ALGORITHM.md 3.4)."""
+        from dmpc.centralized import CentralQP
+
+        qp = CentralQP(self.system, self.design.gains.P_global(), self.N, terminal="box")
+        sol = qp.solve(self.plant.x, self.alpha, self.beta)
+        if not sol.status.feasible:
+            self._note = (f"k=0: round 0 infeasible for agents {', '.join(infeasible)} and the centralised QP is "
+                          f"{sol.status.value} too")
+            return
+        for i in range(self.system.M):
+            plan = Plan(0, 0, sol.z[:, self.system.xs(i)], sol.v[:, self.system.us(i)])
+            self._step_latest[i] = plan
+            self._provided[i] = plan
+        self._note = (f"k=0: round 0 infeasible from decoupled rollouts for agents {', '.join(infeasible)}; "
+                      "started from the centralised QP's plan")
 
     def _round_change(self) -> float:
         """Largest change between this round's plans and the previous round's (inf if none)."""
@@ -299,7 +326,7 @@ class Coordinator:
             alpha_next=alpha_next, beta_next=beta_next, J=float(np.sum(J_agents)), J_agents=J_agents, S=S,
             rounds=self.iteration + 1, max_change=self._max_change, status=status, fallback=fallback,
             fallback_reason=reasons, solve_time=solve_time, qp_iterations=qp_iters, plans_z=plans_z,
-            plans_v=plans_v, latency=latency)
+            plans_v=plans_v, latency=latency, note=self._note)
         actions: list = [StepCompleted(record)]
         self.alpha, self.beta = alpha_next, beta_next
         self.k += 1
@@ -307,6 +334,7 @@ class Coordinator:
         self._step_latest = {}
         self._prev_round = {}
         self._round_status = {}
+        self._note = ""
         if self.k >= self.options.steps:
             self.finished = True
             actions.append(RunFinished("finished"))
@@ -331,7 +359,4 @@ class Coordinator:
         sub = self.system.subsystems[i]
         shift = self.k - plan.k
         z, v = continued(plan, shift + self.N, self._gamma[i], self._K[i])
-        z, v = z[shift:], v[shift:]
-        P = self.design.gains.P[i]
-        stage = np.einsum("ti,ij,tj->", z[:-1], sub.Q, z[:-1]) + np.einsum("ti,ij,tj->", v, sub.R, v)
-        return float(stage + z[-1] @ P @ z[-1])
+        return plan_cost(z[shift:], v[shift:], sub.Q, sub.R, self.design.gains.P[i])

@@ -83,7 +83,7 @@ class RunFolder:
             "status": rec.status, "fallback": rec.fallback, "fallback_reason": rec.fallback_reason,
             "solve_time": rec.solve_time, "qp_iterations": rec.qp_iterations, "latency": rec.latency,
             "step_time": rec.step_time, "x_next": rec.x_next, "alpha_next": rec.alpha_next,
-            "beta_next": rec.beta_next, "plans_z": rec.plans_z, "plans_v": rec.plans_v,
+            "beta_next": rec.beta_next, "plans_z": rec.plans_z, "plans_v": rec.plans_v, "note": rec.note,
         }
         self._log.write(json.dumps(_jsonable(line)) + "\n")
         self._log.flush()
@@ -183,6 +183,7 @@ def summarise(system: CoupledSystem, records: list[StepRecord], arrays: dict[str
         "theorem3_margin": decrease,
         "J_non_increasing": bool(all(np.diff(J) <= 1e-9)) if K > 1 else True,
         "rounds_k0": int(arrays["rounds"][0]) if K else 0,
+        "notes": [f"k={r.k}: {r.note}" if not r.note.startswith("k=") else r.note for r in records if r.note],
         "solve_time_median_s": float(np.median(finite_solve)) if finite_solve.size else None,
         "step_time_median_s": float(np.median(step_time)) if step_time.size else None,
         "step_time_p99_s": float(np.percentile(step_time, 99)) if step_time.size else None,

@@ -1,0 +1,57 @@
+"""One QP over the whole coupled system (problem (9) without tubes), on the shared MPC QP.
+
+Used to seed k = 0 when the first Jacobi round is infeasible from decoupled rollouts
+(ALGORITHM.md 3.4), and as the optimality reference. The terminal constraint is either the
+per-agent boxes ``|z_i(N) - alpha_i| <= beta`` (what the distributed QPs impose together) or
+X^f itself, ``Omega z(N) <= 1``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+
+from dmpc.mpc_qp import MpcQP, QPSolution, StageRows
+from dmpc.system import CoupledSystem, LinearSet
+
+
+class CentralQP:
+    """The centralised MPC QP, set up once.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    P_terminal : ndarray, shape (n, n)
+    horizon : int
+    terminal : {"box", "omega"}
+    omega : ndarray, shape (rows, n), required for ``terminal="omega"``
+    settings : dict, optional
+    """
+
+    def __init__(self, system: CoupledSystem, P_terminal: np.ndarray, horizon: int, terminal: str = "box",
+                 omega: np.ndarray | None = None, settings: dict | None = None) -> None:
+        if terminal not in ("box", "omega") or (terminal == "omega" and omega is None):
+            raise ValueError("terminal must be 'box', or 'omega' with omega given")
+        N = horizon
+        self.terminal = terminal
+        self._rows = None if omega is None else omega.shape[0]
+        Hu, lu, uu = stack_sets([s.input_set for s in system.subsystems])
+        inputs = StageRows(Hu, np.tile(lu, (N, 1)), np.tile(uu, (N, 1)))
+        states = None
+        if any(s.state_set is not None for s in system.subsystems):
+            sets = [s.state_set or LinearSet(np.zeros((0, s.n)), np.zeros(0), np.zeros(0)) for s in system.subsystems]
+            Hx, lx, ux = stack_sets(sets)
+            states = StageRows(Hx, np.tile(lx, (N, 1)), np.tile(ux, (N, 1)))
+        T = np.eye(system.n) if terminal == "box" else np.asarray(omega, float)
+        self._qp = MpcQP(system.A, system.B, system.Q, system.R, P_terminal, N, inputs, states, T, settings)
+
+    def solve(self, x: np.ndarray, alpha: np.ndarray | None = None, beta: float | None = None) -> QPSolution:
+        """Solve from the global state x (n,); ``alpha`` (n,) and ``beta`` for the box terminal."""
+        if self.terminal == "box":
+            return self._qp.solve(x, None, alpha - beta, alpha + beta)
+        return self._qp.solve(x, None, np.full(self._rows, -np.inf), np.ones(self._rows))
+
+
+def stack_sets(sets: list[LinearSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Block-diagonal rows of per-subsystem sets: H (r, d), lower (r,), upper (r,)."""
+    return (sla.block_diag(*[s.H for s in sets]), np.concatenate([s.lower for s in sets]),
+            np.concatenate([s.upper for s in sets]))

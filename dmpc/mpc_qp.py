@@ -1,0 +1,187 @@
+"""The sparse MPC QP in OSQP form, shared by the local and the centralised problems.
+
+Decision vector ``[z(0), ..., z(N), v(0), ..., v(N-1)]`` (OSQP's MPC example layout):
+
+    min  sum_{t<N} z(t)'Q z(t) + v(t)'R v(t) + z(N)'P z(N)
+    s.t. z(0) = x,  z(t+1) = A z(t) + B v(t) + c(t)       (equality rows, right side updated per solve)
+         lower_u(t) <= H_u v(t) <= upper_u(t)              t = 0..N-1
+         lower_x(t) <= H_x z(t) <= upper_x(t)              t = 1..N
+         T z(N) in [terminal lower, terminal upper]        (updated per solve)
+
+Only bound vectors change between solves, so the matrices are factorised once.
+"""
+from __future__ import annotations
+
+import enum
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+
+class QPStatus(str, enum.Enum):
+    """Solver outcome in the project's own terms."""
+
+    SOLVED = "solved"
+    INACCURATE = "solved_inaccurate"
+    INFEASIBLE = "infeasible"
+    UNBOUNDED = "unbounded"
+    MAX_ITER = "max_iter"
+    ERROR = "error"
+
+    @property
+    def feasible(self) -> bool:
+        return self in (QPStatus.SOLVED, QPStatus.INACCURATE)
+
+
+_OSQP_STATUS = {
+    "solved": QPStatus.SOLVED,
+    "solved inaccurate": QPStatus.INACCURATE,
+    "primal infeasible": QPStatus.INFEASIBLE,
+    "primal infeasible inaccurate": QPStatus.INFEASIBLE,
+    "dual infeasible": QPStatus.UNBOUNDED,
+    "dual infeasible inaccurate": QPStatus.UNBOUNDED,
+    "maximum iterations reached": QPStatus.MAX_ITER,
+}
+
+DEFAULT_SETTINGS = dict(
+    eps_abs=1e-7,
+    eps_rel=1e-7,
+    eps_prim_inf=1e-8,
+    eps_dual_inf=1e-8,
+    max_iter=20000,
+    polishing=True,
+    warm_starting=True,
+    check_termination=5,
+    verbose=False,
+)
+
+
+@dataclass(frozen=True)
+class QPSolution:
+    """One solve.
+
+    Attributes
+    ----------
+    status : QPStatus
+    z : ndarray, shape (N + 1, n)
+        Nominal states; ``z[0]`` is the measured state. NaN when not solved.
+    v : ndarray, shape (N, m)
+        Nominal inputs. NaN when not solved.
+    cost : float
+        The objective value of the plan (NaN when not solved).
+    solve_time : float
+        Seconds spent in update + solve.
+    iterations : int
+    """
+
+    status: QPStatus
+    z: np.ndarray
+    v: np.ndarray
+    cost: float
+    solve_time: float
+    iterations: int
+
+
+@dataclass(frozen=True)
+class StageRows:
+    """Constraint rows applied at every step: ``lower[t] <= H w(t) <= upper[t]``.
+
+    H has shape (r, d); lower and upper have shape (steps, r).
+    """
+
+    H: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+class MpcQP:
+    """The QP above for given matrices; ``solve`` updates x, c and the terminal bounds.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    B : ndarray, shape (n, m)
+    Q, R, P : ndarray
+        Stage and terminal weights.
+    horizon : int
+    inputs : StageRows
+        Rows on v(t), ``steps = N``.
+    states : StageRows or None
+        Rows on z(t), t = 1..N (``steps = N``).
+    terminal : ndarray, shape (r_f, n)
+        T in the terminal rows.
+    settings : dict, optional
+        OSQP settings overriding DEFAULT_SETTINGS.
+    """
+
+    def __init__(self, A, B, Q, R, P, horizon: int, inputs: StageRows, states: StageRows | None,
+                 terminal: np.ndarray, settings: dict | None = None) -> None:
+        n, m, N = B.shape[0], B.shape[1], horizon
+        self.n, self.m, self.N = n, m, N
+        self._Q, self._R, self._P = Q, R, P
+        nz, nv = (N + 1) * n, N * m
+        self._nz = nz
+        cost = sp.block_diag([sp.kron(sp.eye(N), Q), P, sp.kron(sp.eye(N), R)], format="csc")
+        Ax = sp.kron(sp.eye(N + 1), -sp.eye(n)) + sp.kron(sp.eye(N + 1, k=-1), A)
+        Bv = sp.kron(sp.vstack([sp.csc_matrix((1, N)), sp.eye(N)]), B)
+        blocks, lower, upper = [sp.hstack([Ax, Bv])], [np.zeros(nz)], [np.zeros(nz)]
+        Hu = inputs.H
+        blocks.append(sp.hstack([sp.csc_matrix((N * Hu.shape[0], nz)), sp.kron(sp.eye(N), Hu)]))
+        lower.append(np.asarray(inputs.lower, float).ravel())
+        upper.append(np.asarray(inputs.upper, float).ravel())
+        if states is not None and states.H.shape[0]:
+            Hx = states.H
+            sel = sp.hstack([sp.csc_matrix((N, 1)), sp.eye(N)])
+            blocks.append(sp.hstack([sp.kron(sel, Hx), sp.csc_matrix((N * Hx.shape[0], nv))]))
+            lower.append(np.asarray(states.lower, float).ravel())
+            upper.append(np.asarray(states.upper, float).ravel())
+        T = sp.csc_matrix(terminal)
+        start = sum(b.size for b in lower)
+        self._terminal = slice(start, start + T.shape[0])
+        blocks.append(sp.hstack([sp.csc_matrix((T.shape[0], N * n)), T, sp.csc_matrix((T.shape[0], nv))]))
+        lower.append(np.full(T.shape[0], -np.inf))
+        upper.append(np.full(T.shape[0], np.inf))
+        self._l, self._u = np.concatenate(lower), np.concatenate(upper)
+        opts = dict(DEFAULT_SETTINGS)
+        opts.update(settings or {})
+        self._solver = osqp.OSQP()
+        self._solver.setup(P=2.0 * sp.triu(cost, format="csc"), q=np.zeros(nz + nv),
+                           A=sp.vstack(blocks, format="csc"), l=self._l, u=self._u, **opts)
+
+    def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
+              terminal_upper: np.ndarray) -> QPSolution:
+        """Solve from x (n,) with feed-forward c (N, n) or None and terminal bounds (r_f,)."""
+        n, N = self.n, self.N
+        l, u = self._l, self._u
+        l[:n] = -x
+        u[:n] = -x
+        c = 0.0 if coupling is None else -coupling.ravel()
+        l[n:self._nz] = c
+        u[n:self._nz] = c
+        l[self._terminal] = terminal_lower
+        u[self._terminal] = terminal_upper
+        t0 = time.perf_counter()
+        self._solver.update(l=l, u=u)
+        res = self._solver.solve()
+        elapsed = time.perf_counter() - t0
+        status = _OSQP_STATUS.get(res.info.status, QPStatus.ERROR)
+        if not status.feasible:
+            return QPSolution(status, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan), float("nan"),
+                              elapsed, res.info.iter)
+        z = res.x[: self._nz].reshape(N + 1, n).copy()
+        z[0] = x
+        v = res.x[self._nz:].reshape(N, self.m).copy()
+        return QPSolution(status, z, v, self.cost(z, v), elapsed, res.info.iter)
+
+    def cost(self, z: np.ndarray, v: np.ndarray) -> float:
+        """Objective of a plan: z (N+1, n), v (N, m)."""
+        return plan_cost(z, v, self._Q, self._R, self._P)
+
+
+def plan_cost(z: np.ndarray, v: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> float:
+    """sum_{t<N} z'Qz + v'Rv + z(N)'P z(N) for z (N+1, n), v (N, m)."""
+    stage = np.einsum("ti,ij,tj->", z[:-1], Q, z[:-1]) + np.einsum("ti,ij,tj->", v, R, v)
+    return float(stage + z[-1] @ P @ z[-1])
