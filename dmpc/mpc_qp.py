@@ -46,6 +46,8 @@ _OSQP_STATUS = {
     "maximum iterations reached": QPStatus.MAX_ITER,
 }
 
+OSQP_INFTY = 1e30
+
 DEFAULT_SETTINGS = dict(
     eps_abs=1e-7,
     eps_rel=1e-7,
@@ -55,6 +57,8 @@ DEFAULT_SETTINGS = dict(
     polishing=True,
     warm_starting=True,
     check_termination=5,
+    polish_refine_iter=1,
+    adaptive_rho_interval=25,  # fixed: the default (0) adapts on measured time, which is not reproducible
     verbose=False,
 )
 
@@ -144,37 +148,53 @@ class MpcQP:
         blocks.append(sp.hstack([sp.csc_matrix((T.shape[0], N * n)), T, sp.csc_matrix((T.shape[0], nv))]))
         lower.append(np.full(T.shape[0], -np.inf))
         upper.append(np.full(T.shape[0], np.inf))
-        self._l, self._u = np.concatenate(lower), np.concatenate(upper)
+        # OSQP treats |bounds| >= OSQP_INFTY as infinite; clip once here instead of on every update
+        self._l = np.clip(np.concatenate(lower), -OSQP_INFTY, OSQP_INFTY)
+        self._u = np.clip(np.concatenate(upper), -OSQP_INFTY, OSQP_INFTY)
         opts = dict(DEFAULT_SETTINGS)
         opts.update(settings or {})
         self._solver = osqp.OSQP()
         self._solver.setup(P=2.0 * sp.triu(cost, format="csc"), q=np.zeros(nz + nv),
                            A=sp.vstack(blocks, format="csc"), l=self._l, u=self._u, **opts)
+        # The wrapper's solve() builds a namespace of every info field and warns on each call;
+        # the extension object underneath gives the same data without that per-solve overhead.
+        self._core = getattr(self._solver, "_solver", None)
 
     def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
               terminal_upper: np.ndarray) -> QPSolution:
-        """Solve from x (n,) with feed-forward c (N, n) or None and terminal bounds (r_f,)."""
-        n, N = self.n, self.N
+        """Solve from x (n,) with feed-forward c (N, n) or None and terminal bounds (r_f,).
+
+        Infinite terminal bounds are allowed (clipped to OSQP_INFTY).
+        """
+        n, nz = self.n, self._nz
         l, u = self._l, self._u
-        l[:n] = -x
-        u[:n] = -x
-        c = 0.0 if coupling is None else -coupling.ravel()
-        l[n:self._nz] = c
-        u[n:self._nz] = c
-        l[self._terminal] = terminal_lower
-        u[self._terminal] = terminal_upper
+        np.negative(x, out=l[:n])
+        if coupling is None:
+            l[n:nz] = 0.0
+        else:
+            np.negative(coupling.reshape(-1), out=l[n:nz])
+        u[:nz] = l[:nz]
+        np.clip(terminal_lower, -OSQP_INFTY, OSQP_INFTY, out=l[self._terminal])
+        np.clip(terminal_upper, -OSQP_INFTY, OSQP_INFTY, out=u[self._terminal])
         t0 = time.perf_counter()
-        self._solver.update(l=l, u=u)
-        res = self._solver.solve()
+        if self._core is not None:
+            self._core.update_data_vec(q=None, l=l, u=u)
+            self._core.solve()
+            info, solution = self._core.info, self._core.solution.x
+        else:
+            self._solver.update(l=l, u=u)
+            res = self._solver.solve(raise_error=False)
+            info, solution = res.info, res.x
         elapsed = time.perf_counter() - t0
-        status = _OSQP_STATUS.get(res.info.status, QPStatus.ERROR)
+        status = _OSQP_STATUS.get(info.status, QPStatus.ERROR)
+        N = self.N
         if not status.feasible:
             return QPSolution(status, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan), float("nan"),
-                              elapsed, res.info.iter)
-        z = res.x[: self._nz].reshape(N + 1, n).copy()
+                              elapsed, info.iter)
+        z = solution[:nz].reshape(N + 1, n)
         z[0] = x
-        v = res.x[self._nz:].reshape(N, self.m).copy()
-        return QPSolution(status, z, v, self.cost(z, v), elapsed, res.info.iter)
+        # q = 0 and P = 2 * cost, so OSQP's objective is the plan's cost
+        return QPSolution(status, z, solution[nz:].reshape(N, self.m), float(info.obj_val), elapsed, info.iter)
 
     def cost(self, z: np.ndarray, v: np.ndarray) -> float:
         """Objective of a plan: z (N+1, n), v (N, m)."""
@@ -183,5 +203,5 @@ class MpcQP:
 
 def plan_cost(z: np.ndarray, v: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> float:
     """sum_{t<N} z'Qz + v'Rv + z(N)'P z(N) for z (N+1, n), v (N, m)."""
-    stage = np.einsum("ti,ij,tj->", z[:-1], Q, z[:-1]) + np.einsum("ti,ij,tj->", v, R, v)
-    return float(stage + z[-1] @ P @ z[-1])
+    zs, zN = z[:-1], z[-1]
+    return float(((zs @ Q) * zs).sum() + ((v @ R) * v).sum() + zN @ P @ zN)

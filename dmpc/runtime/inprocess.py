@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from dmpc.agents.controller import AgentController
 from dmpc.agents.node import AgentNode
+from dmpc.bus.faults import FaultyBus
 from dmpc.bus.interface import Bus
 from dmpc.bus.memory import MemoryBus
 from dmpc.plant.barrier import Coordinator, StepRecord
@@ -33,7 +34,12 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
         Wraps the shared bus per node (fault injection); identity by default.
     """
     bus = MemoryBus()
-    view = bus_for or (lambda b, name: b)
+    if bus_for is not None:
+        view = bus_for
+    elif prepared.faults.is_clean:
+        view = lambda b, name: b  # noqa: E731
+    else:
+        view = lambda b, name: FaultyBus(b, name, prepared.faults)  # noqa: E731
     system, design = prepared.system, prepared.design
     coordinator = Coordinator(system, design, Plant(system), prepared.protocol, run_id)
     plant = PlantNode(view(bus, "plant"), coordinator, prepared.digest, on_step, mode=prepared.mode,

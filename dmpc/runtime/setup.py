@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dmpc.bus.faults import FaultPlan, LinkFault
 from dmpc.design import Design, design_from_json, design_system
 from dmpc.plant.barrier import ProtocolOptions
 from dmpc.scenario import Scenario, alpha0_vector, build_system, given_gains, revision_bounds
@@ -38,6 +39,7 @@ class Prepared:
     mode: str
     dt: float
     deadline: float | None
+    faults: FaultPlan = FaultPlan()
 
     @property
     def names(self) -> list[str]:
@@ -82,4 +84,11 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
     if deadline is None and opts.mode == "realtime":
         deadline = opts.dt
     return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design),
-                    protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline)
+                    protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario))
+
+
+def fault_plan(scenario: Scenario) -> FaultPlan:
+    """The scenario's ``faults`` section as a FaultPlan seeded by the scenario's seed."""
+    f = scenario.faults
+    links = tuple((l.source, l.target, LinkFault(l.delay_ms, l.jitter_ms, l.loss)) for l in f.links)
+    return FaultPlan(default=LinkFault(f.delay_ms, f.jitter_ms, f.loss), links=links, seed=scenario.seed)

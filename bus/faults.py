@@ -1,0 +1,130 @@
+"""Seeded delay, jitter and loss per link, as a wrapper around any Bus.
+
+Faults are applied on the receiving side: one publication reaches several subscribers, and each
+(source -> receiver) link has its own delay and loss. The source of a message is read from its
+key (``plan/<agent>`` and ``ready/<agent>`` come from that agent; releases and control from the
+plant). Each link draws from its own random stream seeded by (seed, source, receiver), so a run
+is reproducible and adding a link does not change the others' draws.
+"""
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer
+from dmpc.bus.messages import PLANT
+
+
+@dataclass(frozen=True)
+class LinkFault:
+    """Delay ``delay_ms`` plus uniform jitter in [0, ``jitter_ms``], and drop with probability ``loss``."""
+
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss: float = 0.0
+
+    @property
+    def is_clean(self) -> bool:
+        return self.delay_ms == 0 and self.jitter_ms == 0 and self.loss == 0
+
+
+@dataclass(frozen=True)
+class FaultPlan:
+    """Faults for every link: a default plus per-(source, receiver) overrides."""
+
+    default: LinkFault = LinkFault()
+    links: tuple[tuple[str, str, LinkFault], ...] = ()
+    seed: int = 0
+
+    def link(self, source: str, receiver: str) -> LinkFault:
+        for s, r, fault in self.links:
+            if s == source and r == receiver:
+                return fault
+        return self.default
+
+    @property
+    def is_clean(self) -> bool:
+        return self.default.is_clean and all(f.is_clean for _, _, f in self.links)
+
+
+def source_of(key: str) -> str:
+    """The sender implied by a key expression of the protocol."""
+    parts = key.split("/")
+    if len(parts) >= 4 and parts[2] in ("plan", "ready"):
+        return parts[3]
+    return PLANT
+
+
+class FaultyBus(Bus):
+    """``inner`` as seen by node ``receiver`` through faulty links.
+
+    Parameters
+    ----------
+    inner : Bus
+    receiver : str
+        The node this view belongs to (an agent name or ``plant``).
+    plan : FaultPlan
+    """
+
+    def __init__(self, inner: Bus, receiver: str, plan: FaultPlan) -> None:
+        self.inner = inner
+        self.receiver = receiver
+        self.plan = plan
+        self._rngs: dict[str, np.random.Generator] = {}
+        self.dropped = 0
+        self.delayed = 0
+
+    def _rng(self, source: str) -> np.random.Generator:
+        rng = self._rngs.get(source)
+        if rng is None:
+            tag = zlib.crc32(f"{source}->{self.receiver}".encode())
+            rng = self._rngs[source] = np.random.default_rng([self.plan.seed, tag])
+        return rng
+
+    def _wrap(self, handler: Handler) -> Handler:
+        def deliver(key: str, payload: bytes) -> None:
+            source = source_of(key)
+            fault = self.plan.link(source, self.receiver)
+            if fault.is_clean:
+                handler(key, payload)
+                return
+            rng = self._rng(source)
+            lost = rng.random() < fault.loss
+            delay = (fault.delay_ms + fault.jitter_ms * rng.random()) / 1000.0
+            if lost:
+                self.dropped += 1
+                return
+            if delay <= 0:
+                handler(key, payload)
+                return
+            self.delayed += 1
+            self.inner.call_later(delay, lambda: handler(key, payload))
+
+        return deliver
+
+    def publish(self, key: str, payload: bytes) -> None:
+        self.inner.publish(key, payload)
+
+    def subscribe(self, key: str, handler: Handler) -> None:
+        self.inner.subscribe(key, self._wrap(handler))
+
+    def declare_alive(self, key: str) -> None:
+        self.inner.declare_alive(key)
+
+    def watch_alive(self, pattern: str, handler: AliveHandler) -> None:
+        self.inner.watch_alive(pattern, handler)
+
+    def now(self) -> float:
+        return self.inner.now()
+
+    def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
+        return self.inner.call_later(delay, fn)
+
+    def run(self, until: Callable[[], bool], timeout: float | None = None) -> bool:
+        return self.inner.run(until, timeout)
+
+    def close(self) -> None:
+        self.inner.close()
