@@ -56,9 +56,17 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
 
 
 def simulate(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: str = "local",
-             bus_for: Callable[[MemoryBus, str], Bus] | None = None) -> InProcessRun:
-    """Run the scenario to the end in this process; ``on_step`` sees every step as it completes."""
+             bus_for: Callable[[MemoryBus, str], Bus] | None = None, startup_timeout: float = 60.0) -> InProcessRun:
+    """Run the scenario to the end in this process; ``on_step`` sees every step as it completes.
+
+    ``startup_timeout`` is in simulated seconds: agents whose Ready never gets through (a dead
+    link) fail the run instead of retrying forever.
+    """
     run = build_run(prepared, on_step, run_id, bus_for)
+    if not run.bus.run(until=lambda: run.plant.started or run.plant.finished, timeout=startup_timeout):
+        missing = sorted(set(prepared.names) - run.plant.ready)
+        run.plant.fail(f"agents {', '.join(missing)} not ready within {startup_timeout:g} s of simulated time")
+        return run
     finished = run.bus.run(until=lambda: run.plant.finished)
     if not finished:
         run.plant.fail("the in-memory run stalled (no events left before the last step)")

@@ -1,0 +1,308 @@
+"""The Zenoh implementation of :class:`~dmpc.bus.interface.Bus`.
+
+Zenoh calls subscriber callbacks on its own threads. Here those callbacks only copy the key
+and payload onto one thread-safe queue; ``run`` pops the queue and calls the handlers on the
+thread that calls it, so node code stays single-threaded exactly as with the in-memory bus.
+One queue for every subscription keeps the arrival order across keys.
+
+Errors
+------
+A handler (or timer) that raises propagates out of ``run`` on the calling thread; the event is
+consumed and the bus stays usable, so the caller may log and call ``run`` again. Nothing ever
+raises into a Zenoh thread: failures there are counted in ``callback_errors`` and ``dropped``.
+"""
+from __future__ import annotations
+
+import atexit
+import heapq
+import itertools
+import logging
+import queue
+import threading
+import time
+import weakref
+from collections.abc import Callable
+
+import zenoh
+
+from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer
+from dmpc.bus.session import BusError, open_session, session_config
+
+log = logging.getLogger(__name__)
+
+ENCODING = "application/msgpack"
+POLL = 0.1  # longest wait in run(): bounds the delay before Ctrl-C is seen
+
+_open_buses: weakref.WeakSet[ZenohBus] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_leftovers() -> None:
+    # An open session can hang the interpreter at exit; close any bus the caller forgot.
+    for bus in list(_open_buses):
+        bus.close()
+
+
+class _ZenohTimer(Timer):
+    __slots__ = ("fn", "cancelled")
+
+    def __init__(self, fn: Callable[[], None]) -> None:
+        self.fn = fn
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        self.cancelled = True
+
+
+class ZenohBus(Bus):
+    """Publish/subscribe, liveliness and timers over one Zenoh session.
+
+    Parameters
+    ----------
+    source : zenoh.Config or zenoh.Session
+        A configuration (opened with :func:`~dmpc.bus.session.open_session`) or an open
+        session.
+    open_timeout : float
+        Seconds to reach the connect endpoints before failing with BusError.
+    close_session : bool
+        Close the session in :meth:`close` (default); False leaves a session passed in open.
+    max_queue : int
+        Messages waiting for ``run`` beyond this are dropped (counted in ``dropped``) rather
+        than blocking Zenoh's threads.
+
+    Attributes
+    ----------
+    dropped : int
+        Samples lost on the receiving side (queue full, or an error while copying one).
+    callback_errors : int
+        Exceptions caught on Zenoh's callback threads.
+    """
+
+    def __init__(
+        self,
+        source: zenoh.Config | zenoh.Session,
+        *,
+        open_timeout: float = 10.0,
+        close_session: bool = True,
+        max_queue: int = 1_000_000,
+    ) -> None:
+        if isinstance(source, zenoh.Config):
+            self._session = open_session(source, open_timeout)
+        elif isinstance(source, zenoh.Session):
+            self._session = source
+        else:
+            raise TypeError(f"expected zenoh.Config or zenoh.Session, got {type(source).__name__}")
+        self._close_session = close_session
+        self._max_queue = max_queue
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._timers: list = []
+        self._seq = itertools.count()
+        self._lock = threading.Lock()  # publisher cache, timer heap, declarations, close
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._declared: list = []  # subscribers and tokens, undeclared in reverse on close
+        self._closed = False
+        self.dropped = 0
+        self.callback_errors = 0
+        _open_buses.add(self)
+
+    @classmethod
+    def open(cls, *, timeout: float = 10.0, **options) -> ZenohBus:
+        """Open a bus from :func:`~dmpc.bus.session.session_config` keyword arguments."""
+        return cls(session_config(**options), open_timeout=timeout)
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The underlying session (for readiness checks and diagnostics)."""
+        return self._session
+
+    # -- sending -------------------------------------------------------------------------
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            with self._lock:
+                self._check_open()
+                publisher = self._publishers.get(key)
+                if publisher is None:
+                    publisher = self._session.declare_publisher(
+                        _key_expr(key),
+                        encoding=ENCODING,
+                        congestion_control=zenoh.CongestionControl.BLOCK,  # default is DROP
+                        reliability=zenoh.Reliability.RELIABLE,
+                        priority=zenoh.Priority.REAL_TIME,
+                        express=True,
+                    )
+                    self._publishers[key] = publisher
+        return publisher
+
+    def publish(self, key: str, payload: bytes) -> None:
+        """Send ``payload`` to every subscriber of ``key`` (BusError once closed)."""
+        self._check_open()
+        try:
+            self._publisher(key).put(bytes(payload))
+        except zenoh.ZError as exc:
+            raise BusError(f"publish on {key!r} failed: {exc}") from exc
+
+    def wait_for_subscribers(self, key: str, timeout: float) -> bool:
+        """Wait until at least one subscriber matches ``key``; False after ``timeout`` seconds.
+
+        Declarations spread asynchronously, so a message published right after a remote
+        subscriber is declared may be missed. Messages arriving meanwhile stay queued.
+        """
+        publisher = self._publisher(key)
+        deadline = time.monotonic() + timeout
+        while not publisher.matching_status.matching:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.002)
+        return True
+
+    # -- receiving (Zenoh threads) ---------------------------------------------------------
+
+    def _enqueue(self, handler: Callable, key: str, value) -> None:
+        if self._queue.qsize() >= self._max_queue:
+            self.dropped += 1
+            return
+        self._queue.put((handler, key, value))
+
+    def _on_sample(self, handler: Handler) -> Callable[[zenoh.Sample], None]:
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                self._enqueue(handler, str(sample.key_expr), sample.payload.to_bytes())
+            except BaseException:  # noqa: BLE001 - must not escape into Zenoh's thread
+                self.callback_errors += 1
+                self.dropped += 1
+
+        return callback
+
+    def _on_alive(self, handler: AliveHandler) -> Callable[[zenoh.Sample], None]:
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                alive = sample.kind == zenoh.SampleKind.PUT
+                self._enqueue(handler, str(sample.key_expr), alive)
+            except BaseException:  # noqa: BLE001
+                self.callback_errors += 1
+                self.dropped += 1
+
+        return callback
+
+    def _declare(self, make: Callable[[], object]) -> None:
+        with self._lock:
+            self._check_open()
+            self._declared.append(make())
+
+    def subscribe(self, key: str, handler: Handler) -> None:
+        """Call ``handler(key, payload)`` on the ``run`` thread for each message on ``key``."""
+        expr = _key_expr(key)
+        self._declare(lambda: self._session.declare_subscriber(expr, self._on_sample(handler)))
+
+    def declare_alive(self, key: str) -> None:
+        """Hold a liveliness token on ``key`` until :meth:`close` (or the process dies)."""
+        expr = _key_expr(key)
+        self._declare(lambda: self._session.liveliness().declare_token(expr))
+
+    def watch_alive(self, pattern: str, handler: AliveHandler) -> None:
+        """Call ``handler(key, alive)`` on the ``run`` thread as tokens matching ``pattern``
+        appear or disappear; tokens that exist already are reported as alive."""
+        expr = _key_expr(pattern)
+        self._declare(
+            lambda: self._session.liveliness().declare_subscriber(
+                expr, self._on_alive(handler), history=True
+            )
+        )
+
+    # -- time and dispatch -----------------------------------------------------------------
+
+    def now(self) -> float:
+        """``time.monotonic()``: on Linux one clock for every process of a host."""
+        return time.monotonic()
+
+    def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
+        """Run ``fn`` on the ``run`` thread ``delay`` seconds from now (thread-safe)."""
+        timer = _ZenohTimer(fn)
+        with self._lock:
+            heapq.heappush(self._timers, (time.monotonic() + max(0.0, delay), next(self._seq), timer))
+        self._queue.put(None)  # wake a run() waiting on the queue so it sees the new deadline
+        return timer
+
+    def _due_timer(self, now: float) -> tuple[_ZenohTimer | None, float | None]:
+        """Pop the next due timer, or return the time of the next one."""
+        with self._lock:
+            while self._timers and self._timers[0][2].cancelled:
+                heapq.heappop(self._timers)
+            if not self._timers:
+                return None, None
+            if self._timers[0][0] <= now:
+                return heapq.heappop(self._timers)[2], None
+            return None, self._timers[0][0]
+
+    def run(self, until: Callable[[], bool], timeout: float | None = None) -> bool:
+        """Dispatch messages, liveliness events and timers on the calling thread.
+
+        Returns True as soon as ``until()`` holds (checked before every event), False when
+        ``timeout`` seconds pass first. Exceptions from handlers and timers propagate.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not until():
+            now = time.monotonic()
+            timer, next_at = self._due_timer(now)
+            if timer is not None:
+                timer.fn()
+                continue
+            if deadline is not None and now >= deadline:
+                return False
+            wait = POLL
+            for limit in (next_at, deadline):
+                if limit is not None:
+                    wait = min(wait, limit - now)
+            try:
+                item = self._queue.get(timeout=max(wait, 0.0))
+            except queue.Empty:
+                continue
+            if item is not None:
+                handler, key, value = item
+                handler(key, value)
+        return True
+
+    def queue_depth(self) -> int:
+        """Events received and not yet dispatched."""
+        return self._queue.qsize()
+
+    # -- shutdown --------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise BusError("the Zenoh bus is closed")
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Undeclare everything and close the session; idempotent, never raises."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            entities = list(self._publishers.values()) + self._declared[::-1]
+            self._publishers.clear()
+            self._declared.clear()
+            self._timers.clear()
+        for entity in entities:
+            try:
+                entity.undeclare()
+            except Exception as exc:  # noqa: BLE001 - best effort on the way out
+                log.debug("undeclare failed: %s", exc)
+        if self._close_session:
+            try:
+                self._session.close()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("closing the Zenoh session failed: %s", exc)
+        _open_buses.discard(self)
+
+
+def _key_expr(key: str) -> zenoh.KeyExpr:
+    try:
+        return zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        raise ValueError(f"invalid key expression {key!r}: {exc}") from exc

@@ -1,0 +1,1 @@
+"""Shared, independent reference data and computations for the tests."""

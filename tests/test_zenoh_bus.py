@@ -1,0 +1,289 @@
+"""End-to-end tests of the Zenoh bus on loopback (multicast off, a free port per test)."""
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import pytest
+import zenoh
+
+from dmpc.bus.session import (
+    BusError,
+    TlsFiles,
+    check_endpoint,
+    free_tcp_port,
+    open_session,
+    session_config,
+)
+from dmpc.bus.zenoh_bus import ZenohBus
+
+import helpers_zenoh as hz
+
+pytestmark = pytest.mark.e2e
+
+
+def collect(bus: ZenohBus, key: str) -> list:
+    got: list = []
+    bus.subscribe(key, lambda k, payload: got.append((k, payload)))
+    return got
+
+
+# -- configuration ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "bad", ["127.0.0.1:7447", "tcp/127.0.0.1", "tcp/host:99999", "foo/127.0.0.1:1", "tcp//:1", ""]
+)
+def test_bad_endpoint_is_named(bad):
+    with pytest.raises(ValueError, match="endpoint"):
+        session_config(connect=[bad])
+    with pytest.raises(ValueError) as info:
+        check_endpoint(bad)
+    assert repr(bad) in str(info.value)
+
+
+def test_connect_to_port_zero_refused():
+    with pytest.raises(ValueError, match="tcp/127.0.0.1:0"):
+        session_config(connect=["tcp/127.0.0.1:0"])
+
+
+def test_peer_default_listen_follows_connect_endpoints():
+    def listen_of(config):
+        return json.loads(config.get_json("listen/endpoints"))
+
+    assert listen_of(session_config(connect=["tcp/127.0.0.1:7447"])) == ["tcp/127.0.0.1:0"]
+    assert listen_of(session_config(connect=["tcp/localhost:7447"])) == ["tcp/127.0.0.1:0"]
+    assert listen_of(session_config(connect=["tcp/10.1.2.3:7447"])) == ["tcp/0.0.0.0:0"]
+    assert listen_of(session_config(connect=["tcp/127.0.0.1:7447"], multicast=True)) == [
+        "tcp/0.0.0.0:0"
+    ]
+    config = session_config(mode="client", connect=["tcp/127.0.0.1:7447"], lease_ms=1500)
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("transport/link/tx/lease")) == 1500
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+
+
+def test_tls_keys_are_set(tmp_path):
+    for name in ("ca.pem", "cert.pem", "key.pem"):
+        (tmp_path / name).write_text("-")
+    tls = TlsFiles(tmp_path / "ca.pem", tmp_path / "cert.pem", tmp_path / "key.pem")
+    config = session_config(listen=["tls/127.0.0.1:0"], tls=tls)
+    section = json.loads(config.get_json("transport/link/tls"))
+    assert section["root_ca_certificate"] == str(tmp_path / "ca.pem")
+    assert section["listen_certificate"] == section["connect_certificate"] == str(tmp_path / "cert.pem")
+    assert section["listen_private_key"] == section["connect_private_key"] == str(tmp_path / "key.pem")
+    assert section["enable_mtls"] is True
+    with pytest.raises(ValueError, match="missing.pem"):
+        session_config(tls=TlsFiles(tmp_path / "missing.pem", tls.cert, tls.key))
+
+
+@pytest.mark.parametrize("mode", ["peer", "client"])
+def test_unreachable_endpoint_fails_in_time(mode):
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    start = time.monotonic()
+    with pytest.raises(BusError, match=endpoint):
+        ZenohBus(session_config(mode=mode, connect=[endpoint]), open_timeout=1.0)
+    assert time.monotonic() - start < 3.0
+
+
+def test_busy_listen_port_fails_with_bus_error():
+    port = free_tcp_port()
+    with hz.listener(port):
+        with pytest.raises(BusError, match=f"127.0.0.1:{port}"):
+            hz.listener(port)
+
+
+# -- messages --------------------------------------------------------------------------------
+
+
+def test_messages_both_ways_in_order():
+    with hz.peer_pair() as (a, b):
+        at_a, at_b = collect(a, "t/to_a"), collect(b, "t/to_b")
+        assert a.wait_for_subscribers("t/to_b", 5) and b.wait_for_subscribers("t/to_a", 5)
+        for i in range(20):
+            a.publish("t/to_b", bytes([i]))
+            b.publish("t/to_a", bytes([100 + i]))
+        assert b.run(lambda: len(at_b) == 20, timeout=5)
+        assert a.run(lambda: len(at_a) == 20, timeout=5)
+        assert at_b == [("t/to_b", bytes([i])) for i in range(20)]
+        assert at_a == [("t/to_a", bytes([100 + i])) for i in range(20)]
+
+
+def test_prefix_subscription_matches_one_chunk():
+    with hz.peer_pair() as (a, b):
+        got = collect(b, "t/plan/*")
+        assert a.wait_for_subscribers("t/plan/1", 5)
+        a.publish("t/plan/1", b"one")
+        a.publish("t/plan/1/deeper", b"no")
+        a.publish("t/other/1", b"no")
+        a.publish("t/plan/2", b"two")
+        assert b.run(lambda: len(got) == 2, timeout=5)
+        b.run(lambda: False, timeout=0.1)
+        assert got == [("t/plan/1", b"one"), ("t/plan/2", b"two")]
+
+
+def test_burst_of_1000_messages_all_arrive():
+    with hz.peer_pair() as (a, b):
+        got = collect(b, "t/burst")
+        assert a.wait_for_subscribers("t/burst", 5)
+        payloads = [i.to_bytes(4, "little") + bytes(1000) for i in range(1000)]
+        for payload in payloads:
+            a.publish("t/burst", payload)
+        assert b.run(lambda: len(got) == 1000, timeout=10), f"{len(got)} of 1000"
+        assert [p for _, p in got] == payloads
+        assert b.dropped == 0 and b.callback_errors == 0
+
+
+def test_handlers_run_on_the_run_thread():
+    with hz.peer_pair() as (a, b):
+        threads = []
+        b.subscribe("t/x", lambda k, p: threads.append(threading.get_ident()))
+        b.watch_alive("t/alive/*", lambda k, alive: threads.append(threading.get_ident()))
+        b.call_later(0.0, lambda: threads.append(threading.get_ident()))
+        a.declare_alive("t/alive/a")
+        assert a.wait_for_subscribers("t/x", 5)
+        a.publish("t/x", b"1")
+        assert b.run(lambda: len(threads) == 3, timeout=5)
+        assert set(threads) == {threading.get_ident()}
+
+
+def test_handler_exception_propagates_and_bus_keeps_working():
+    with hz.peer_pair() as (a, b):
+        got = []
+
+        def handler(key, payload):
+            if payload == b"bad":
+                raise ValueError("bad payload")
+            got.append(payload)
+
+        b.subscribe("t/x", handler)
+        assert a.wait_for_subscribers("t/x", 5)
+        for payload in (b"bad", b"ok1", b"ok2"):
+            a.publish("t/x", payload)
+        with pytest.raises(ValueError, match="bad payload"):
+            b.run(lambda: False, timeout=5)
+        assert b.run(lambda: len(got) == 2, timeout=5)
+        assert got == [b"ok1", b"ok2"] and b.callback_errors == 0
+
+
+# -- liveliness ------------------------------------------------------------------------------
+
+
+def test_liveliness_appears_and_disappears_on_close():
+    port = free_tcp_port()
+    with hz.listener(port) as watcher:
+        other = hz.connector(port)
+        try:
+            other.declare_alive("t/alive/early")
+            events = []
+            watcher.watch_alive("t/alive/*", lambda k, alive: events.append((k, alive)))
+            assert watcher.run(lambda: ("t/alive/early", True) in events, timeout=5)
+            other.declare_alive("t/alive/late")
+            assert watcher.run(lambda: ("t/alive/late", True) in events, timeout=5)
+        finally:
+            other.close()
+        gone = {("t/alive/early", False), ("t/alive/late", False)}
+        assert watcher.run(lambda: gone <= set(events), timeout=5)
+
+
+# -- timers and run --------------------------------------------------------------------------
+
+
+def test_timers_fire_in_order_and_cancel():
+    bus = ZenohBus(session_config(listen=["tcp/127.0.0.1:0"]))
+    try:
+        fired = []
+        bus.call_later(0.06, lambda: fired.append("c"))
+        bus.call_later(0.02, lambda: fired.append("a"))
+        bus.call_later(0.04, lambda: fired.append("b"))
+        bus.call_later(0.03, lambda: fired.append("cancelled")).cancel()
+        start = bus.now()
+        assert bus.run(lambda: len(fired) == 3, timeout=2)
+        assert fired == ["a", "b", "c"]
+        assert bus.now() - start >= 0.06
+    finally:
+        bus.close()
+
+
+def test_run_timeout_and_until():
+    bus = ZenohBus(session_config(listen=["tcp/127.0.0.1:0"]))
+    try:
+        start = time.monotonic()
+        assert bus.run(lambda: False, timeout=0.25) is False
+        assert 0.25 <= time.monotonic() - start < 0.6
+        assert bus.run(lambda: True, timeout=0) is True
+        flag = []
+        bus.call_later(0.05, lambda: flag.append(1))
+        assert bus.run(lambda: bool(flag), timeout=2) is True
+    finally:
+        bus.close()
+
+
+def test_close_is_idempotent_and_publish_after_close_fails():
+    bus = ZenohBus(session_config(listen=["tcp/127.0.0.1:0"]))
+    bus.subscribe("t/x", lambda k, p: None)
+    bus.declare_alive("t/alive/x")
+    bus.publish("t/x", b"1")
+    bus.close()
+    bus.close()
+    assert bus.closed
+    with pytest.raises(BusError):
+        bus.publish("t/x", b"2")
+
+
+# -- other processes and topologies ----------------------------------------------------------
+
+
+def test_spawned_process_publishes_to_parent():
+    port = free_tcp_port()
+    proc = hz.spawn_context().Process(target=hz.child_publisher, args=(port, 200))
+    proc.start()  # before this process opens its session for the test
+    try:
+        with hz.listener(port) as bus:
+            got = collect(bus, hz.DATA)
+            assert bus.run(lambda: len(got) == 200, timeout=20), f"{len(got)} of 200"
+            assert [int.from_bytes(p, "little") for _, p in got] == list(range(200))
+            bus.publish(hz.DONE, b"")
+            proc.join(10)
+            assert proc.exitcode == 0
+    finally:
+        hz.stop_process(proc)
+
+
+def test_clients_through_python_router():
+    port = free_tcp_port()
+    with hz.router(port):
+        with hz.connector(port, mode="client") as a, hz.connector(port, mode="client") as b:
+            at_a, at_b = collect(a, "t/to_a"), collect(b, "t/to_b")
+            assert a.wait_for_subscribers("t/to_b", 5) and b.wait_for_subscribers("t/to_a", 5)
+            for i in range(10):
+                a.publish("t/to_b", bytes([i]))
+                b.publish("t/to_a", bytes([i]))
+            assert b.run(lambda: len(at_b) == 10, timeout=5)
+            assert a.run(lambda: len(at_a) == 10, timeout=5)
+            assert [p for _, p in at_b] == [bytes([i]) for i in range(10)]
+
+
+@pytest.mark.parametrize("mode", ["peer", "client"])
+def test_round_trip_between_processes(mode, capsys):
+    """Measures (prints) the bus overhead; asserts only that every PONG came back."""
+    port = free_tcp_port()
+    proc = hz.spawn_context().Process(target=hz.child_echo, args=(port, mode))
+    proc.start()
+    try:
+        if mode == "peer":
+            with hz.listener(port) as bus:
+                rtts = hz.ping_pong(bus, 2000)
+                bus.publish(hz.STOP, b"")
+        else:
+            with hz.router(port), hz.connector(port, mode="client") as bus:
+                rtts = hz.ping_pong(bus, 2000)
+                bus.publish(hz.STOP, b"")
+                proc.join(10)  # let the echo leave before the router goes
+        with capsys.disabled():
+            route = "peer to peer" if mode == "peer" else "clients via a Python router"
+            print(f"\nZenohBus round trip, two processes, {route}: {hz.summary_us(rtts)}")
+        assert len(rtts) == 2000
+    finally:
+        hz.stop_process(proc)
