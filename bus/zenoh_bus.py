@@ -38,7 +38,7 @@ _open_buses: weakref.WeakSet[ZenohBus] = weakref.WeakSet()
 
 @atexit.register
 def _close_leftovers() -> None:
-    # An open session can hang the interpreter at exit; close any bus the caller forgot.
+    # Safety net: close any bus the caller forgot, so sessions end before interpreter teardown.
     for bus in list(_open_buses):
         bus.close()
 
@@ -165,7 +165,7 @@ class ZenohBus(Bus):
             return
         self._queue.put((handler, key, value))
 
-    def _on_sample(self, handler: Handler) -> Callable[[zenoh.Sample], None]:
+    def _on_sample(self, handler: Handler) -> zenoh.handlers.Callback:
         def callback(sample: zenoh.Sample) -> None:
             try:
                 self._enqueue(handler, str(sample.key_expr), sample.payload.to_bytes())
@@ -173,9 +173,9 @@ class ZenohBus(Bus):
                 self.callback_errors += 1
                 self.dropped += 1
 
-        return callback
+        return _direct(callback)
 
-    def _on_alive(self, handler: AliveHandler) -> Callable[[zenoh.Sample], None]:
+    def _on_alive(self, handler: AliveHandler) -> zenoh.handlers.Callback:
         def callback(sample: zenoh.Sample) -> None:
             try:
                 alive = sample.kind == zenoh.SampleKind.PUT
@@ -184,7 +184,7 @@ class ZenohBus(Bus):
                 self.callback_errors += 1
                 self.dropped += 1
 
-        return callback
+        return _direct(callback)
 
     def _declare(self, make: Callable[[], object]) -> None:
         with self._lock:
@@ -299,6 +299,13 @@ class ZenohBus(Bus):
             except Exception as exc:  # noqa: BLE001
                 log.warning("closing the Zenoh session failed: %s", exc)
         _open_buses.discard(self)
+
+
+def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback:
+    # A plain Python callable is run on an extra non-daemon Python thread ("indirect"), which
+    # the interpreter joins at exit before atexit hooks run: a bus left open then hangs the
+    # process. Our callbacks only enqueue, so they can run on Zenoh's own thread.
+    return zenoh.handlers.Callback(fn, indirect=False)
 
 
 def _key_expr(key: str) -> zenoh.KeyExpr:

@@ -99,8 +99,8 @@ def simulate(scenario: ScenarioArg,
     out = _default_out(out, prepared.scenario.name)
     with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
         run = run_inprocess(prepared, recorder.on_step)
-        summary = recorder.complete(method="tv-box", runtime="in-process",
-                                    failure=run.plant.failure or None)
+        summary = recorder.complete(runtime="in-process", failure=run.plant.failure or None,
+                                    rejected=run.plant.rejected, duplicates=run.plant.coordinator.duplicates)
     print_summary(summary, out)
     if run.plant.failure:
         raise typer.Exit(1)
@@ -154,7 +154,7 @@ def _open_bus(mode: str, connect, listen, multicast: bool, lease: float | None, 
     except ValueError as exc:
         raise InputError(str(exc)) from None
     try:
-        return ZenohBus.open(config, timeout=timeout)
+        return ZenohBus(config, open_timeout=timeout)
     except BusError as exc:
         error_line(str(exc))
         raise typer.Exit(1) from None
@@ -290,7 +290,10 @@ def main() -> None:
     """Console entry point: maps expected errors to one line and exit code 2."""
     silence_c_stdout()
     try:
-        app(standalone_mode=False)
+        # without standalone mode, click returns the code of typer.Exit instead of raising it
+        code = app(standalone_mode=False)
+        if isinstance(code, int) and code != 0:
+            sys.exit(code)
     except (ScenarioError, DesignError, RunFolderError, InputError) as exc:
         error_line(str(exc))
         sys.exit(EXIT_INPUT)

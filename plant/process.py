@@ -13,6 +13,7 @@ from dmpc.runtime.setup import Prepared
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_INTERRUPTED = 130
+LINGER = 2.0
 
 
 @dataclass(frozen=True)
@@ -40,14 +41,30 @@ def run_plant(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, 
                       f"(alive: {', '.join(alive) or 'none'}; run id '{run_id}')")
             node.fail(reason)
             summary = recorder.complete(runtime=runtime, failure=reason)
+            linger(bus, node)
             return PlantOutcome(EXIT_FAILED, reason, summary)
         bus.run(until=lambda: node.finished)
     except KeyboardInterrupt:
         node.abort("aborted")
         summary = recorder.complete(runtime=runtime, aborted="interrupted", rejected=node.rejected)
+        linger(bus, node)
         return PlantOutcome(EXIT_INTERRUPTED, f"plant: interrupted after {coordinator.k} steps", summary)
     summary = recorder.complete(runtime=runtime, failure=node.failure or None, rejected=node.rejected,
                                 duplicates=coordinator.duplicates)
+    linger(bus, node)
     if node.failure:
         return PlantOutcome(EXIT_FAILED, f"plant: {node.failure}", summary)
     return PlantOutcome(EXIT_OK, f"plant: finished {coordinator.k} steps", summary)
+
+
+def linger(bus: Bus, node: PlantNode, timeout: float = LINGER) -> None:
+    """Keep the session open until the agents, told to stop, have left (at most ``timeout`` s).
+
+    Closing at once could withdraw the plant's liveliness token before the Stop message has
+    reached every agent (through a router they travel different paths), and an agent would
+    then report a lost plant instead of a finished run.
+    """
+    try:
+        bus.run(until=lambda: not node.alive, timeout=timeout)
+    except KeyboardInterrupt:
+        pass

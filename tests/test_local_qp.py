@@ -18,7 +18,7 @@ from scipy.optimize import linprog
 from dmpc.agents.local_qp import LocalQP, QPStatus
 from dmpc.design.tubes import Tightening
 from dmpc.system import LinearSet, Subsystem
-from helpers.reference import A_II, B_II, P_PAPER, Q_I, R_I
+from tests.helpers.reference import A_II, B_II, P_PAPER, Q_I, R_I
 
 N = 10
 

@@ -25,7 +25,7 @@ from dmpc.records.run_folder import trajectory_arrays
 from dmpc.runtime.inprocess import simulate
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
-from helpers.reference import (
+from tests.helpers.reference import (
     A_II, A_IJ, B_II, CHAIN, PAPER, U_BAR, block_diag, chain_matrices, chain_x0, cube_vertices,
 )
 

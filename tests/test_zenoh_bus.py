@@ -18,7 +18,7 @@ from dmpc.bus.session import (
 )
 from dmpc.bus.zenoh_bus import ZenohBus
 
-import helpers_zenoh as hz
+from tests import helpers_zenoh as hz
 
 pytestmark = pytest.mark.e2e
 
