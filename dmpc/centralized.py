@@ -8,10 +8,9 @@ X^f itself, ``Omega z(N) <= 1``.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 
 from dmpc.mpc_qp import MpcQP, QPSolution, StageRows
-from dmpc.system import CoupledSystem, LinearSet
+from dmpc.system import CoupledSystem, LinearSet, block_diag
 
 
 class CentralQP:
@@ -53,5 +52,5 @@ class CentralQP:
 
 def stack_sets(sets: list[LinearSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Block-diagonal rows of per-subsystem sets: H (r, d), lower (r,), upper (r,)."""
-    return (sla.block_diag(*[s.H for s in sets]), np.concatenate([s.lower for s in sets]),
+    return (block_diag(*[s.H for s in sets]), np.concatenate([s.lower for s in sets]),
             np.concatenate([s.upper for s in sets]))

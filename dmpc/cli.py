@@ -170,6 +170,7 @@ def agent(scenario: ScenarioArg,
           set_: SetOpt = None) -> None:
     """Run one subsystem's agent on the Zenoh bus until the plant stops the run."""
     from dmpc.agents.process import run_agent
+    from dmpc.runtime.memory import trim_heap
     from dmpc.runtime.signals import sigterm_as_interrupt
 
     if mode not in ("peer", "client"):
@@ -180,6 +181,7 @@ def agent(scenario: ScenarioArg,
         raise InputError(f"--id: no subsystem {id_!r} in the scenario (subsystems: {', '.join(prepared.names)})")
     rid = _run_id(run_id, prepared)
     bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout)
+    trim_heap()
     try:
         outcome = run_agent(prepared, id_, bus, rid, startup_timeout)
     except KeyboardInterrupt:

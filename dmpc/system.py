@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-from scipy.linalg import block_diag
+import scipy.sparse as sp
 
 
 @dataclass(frozen=True)
@@ -244,6 +244,15 @@ class CoupledSystem:
         return [u[self.us(i)] for i in range(self.M)]
 
 
+
+
+def block_diag(*blocks: np.ndarray) -> np.ndarray:
+    """Dense block-diagonal matrix.
+
+    Built with scipy.sparse (already loaded for OSQP) so that agent processes do not import
+    scipy.linalg, which costs about 8 MB per process.
+    """
+    return sp.block_diag(blocks, format="csr").toarray() if blocks else np.zeros((0, 0))
 
 
 def project_onto(linear_set: LinearSet, u: np.ndarray) -> np.ndarray:

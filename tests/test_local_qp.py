@@ -1,9 +1,10 @@
 """QP_i (ALGORITHM.md 3.3) against the same QP written independently in cvxpy and solved by Clarabel.
 
-The cvxpy problems are parametrised (x, c, alpha, beta) and built once per variant; the
-LocalQP instances are also built once and reused across all hypothesis examples, so every
-example also checks that a solve depends only on its own data (bounds fully updated, warm
-start harmless).
+The cvxpy problems are parametrised (x, c, alpha, beta) and built once per variant. The
+hypothesis comparisons use a fresh LocalQP per example (the QP itself); reusing one LocalQP
+over a sequence of instances (OSQP warm start, only bounds updated) is tested separately:
+over feasible instances it must give the fresh answers, and over a sequence that contains
+infeasible instances it currently does not (source bug, see the xfail test at the end).
 """
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ class Variant:
 
     def __init__(self, sub: Subsystem, P: np.ndarray, tightening: Tightening) -> None:
         self.sub, self.P, self.tight = sub, P, tightening
-        self.qp = LocalQP(sub, P, N, tightening)
+        self.qp = LocalQP(sub, P, N, tightening)  # reused (warm-started) instance
         n, m = sub.n, sub.m
         self.x, self.alpha = cp.Parameter(n), cp.Parameter(n)
         self.c = cp.Parameter((N, n))
@@ -153,7 +154,7 @@ instances = dict(x=vec(2, -7.0, 7.0), c=vec(2 * N, -0.5, 0.5).map(lambda a: a.re
 
 
 def compare(variant: Variant, x, c, alpha, beta) -> None:
-    sol = variant.qp.solve(x, c, alpha, beta)
+    sol = LocalQP(variant.sub, variant.P, N, variant.tight).solve(x, c, alpha, beta)
     ref = variant.reference(x, c, alpha, beta)
     if ref in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE) or sol.status == QPStatus.INFEASIBLE:
         s = variant.terminal_violation(x, c, alpha, beta)
@@ -216,6 +217,57 @@ def test_both_verdicts_occur(box_variant, polytope_variant):
             alpha, beta = rng.uniform(-1.5, 1.5, 2), rng.uniform(0.2, 1.5)
             seen.add(variant.qp.solve(x, c, alpha, beta).status)
         assert {QPStatus.SOLVED, QPStatus.INFEASIBLE} <= seen
+
+
+def random_instance(rng, scale=1.0):
+    return (rng.uniform(-7, 7, 2) * scale, rng.uniform(-0.5, 0.5, (N, 2)) * scale, rng.uniform(-1.5, 1.5, 2) * scale,
+            rng.uniform(0.2, 1.5))
+
+
+def test_reused_instance_matches_fresh_solves_on_feasible_instances(polytope_variant):
+    """One LocalQP over 80 feasible instances in a row (warm starts) gives the fresh answers."""
+    v = polytope_variant
+    qp = LocalQP(v.sub, v.P, N, v.tight)
+    rng = np.random.default_rng(7)
+    done = 0
+    while done < 80:
+        inst = random_instance(rng, 0.5)
+        if v.terminal_violation(*inst) > -1e-3:
+            continue
+        reused = qp.solve(*inst)
+        fresh = LocalQP(v.sub, v.P, N, v.tight).solve(*inst)
+        assert reused.status is QPStatus.SOLVED and fresh.status is QPStatus.SOLVED
+        np.testing.assert_allclose(reused.z, fresh.z, atol=1e-5)
+        np.testing.assert_allclose(reused.v, fresh.v, atol=1e-5)
+        done += 1
+
+
+@pytest.mark.xfail(strict=True, reason="source bug: dmpc/mpc_qp.py (used by LocalQP) keeps OSQP's state across "
+                   "solves and sets eps_prim_inf=1e-8; after infeasible solves, clearly infeasible QPs end as "
+                   "MAX_ITER after 20000 iterations and once a clearly feasible QP (LP margin -0.96) is "
+                   "reported MAX_ITER; a fresh LocalQP gives INFEASIBLE / SOLVED for the same instances")
+def test_reused_instance_verdicts_after_infeasible_solves(polytope_variant):
+    v = polytope_variant
+    qp = LocalQP(v.sub, v.P, N, v.tight)
+    hopeless = (np.array([-6.0, 0.0]), np.zeros((N, 2)), np.array([-0.85, 0.0]), 0.87)  # z(1) cannot reach |x| <= 4
+    rng = np.random.default_rng(0)
+    wrong = []
+    for trial in range(40):
+        for inst in (random_instance(rng), hopeless):
+            margin = v.terminal_violation(*inst)
+            status = qp.solve(*inst).status
+            if margin < -1e-3 and status is not QPStatus.SOLVED:
+                wrong.append((trial, "feasible", status.value))
+            if margin > 1e-3 and status is not QPStatus.INFEASIBLE:
+                wrong.append((trial, "infeasible", status.value))
+    assert wrong == []
+
+
+def test_fresh_instance_detects_the_hopeless_instance(polytope_variant):
+    v = polytope_variant
+    hopeless = (np.array([-6.0, 0.0]), np.zeros((N, 2)), np.array([-0.85, 0.0]), 0.87)
+    assert v.terminal_violation(*hopeless) == np.inf
+    assert LocalQP(v.sub, v.P, N, v.tight).solve(*hopeless).status is QPStatus.INFEASIBLE
 
 
 # ---------------------------------------------------------------- known answers

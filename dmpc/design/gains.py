@@ -13,10 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from dmpc.design.errors import DesignError
-from dmpc.system import CoupledSystem
+from dmpc.system import CoupledSystem, block_diag
 
 LMI_OBJECTIVE = "maximise log det X (X = P^-1, block diagonal): the largest terminal ellipsoid"
 
@@ -51,15 +50,15 @@ class GainDesign:
     objective: str = ""
 
     def K_global(self) -> np.ndarray:
-        return sla.block_diag(*self.K)
+        return block_diag(*self.K)
 
     def P_global(self) -> np.ndarray:
-        return sla.block_diag(*self.P)
+        return block_diag(*self.P)
 
 
 def closed_loop_matrix(system: CoupledSystem, K: list[np.ndarray]) -> np.ndarray:
     """A + B diag(K_i), shape (n, n)."""
-    return system.A + system.B @ sla.block_diag(*K)
+    return system.A + system.B @ block_diag(*K)
 
 
 def verify_gains(system: CoupledSystem, K: list[np.ndarray], P: list[np.ndarray], method: str,
@@ -74,8 +73,8 @@ def verify_gains(system: CoupledSystem, K: list[np.ndarray], P: list[np.ndarray]
     method, objective : str
         Recorded in the result.
     """
-    Kg = sla.block_diag(*K)
-    Pg = sla.block_diag(*P)
+    Kg = block_diag(*K)
+    Pg = block_diag(*P)
     AK = system.A + system.B @ Kg
     rho = float(np.max(np.abs(np.linalg.eigvals(AK))))
     lhs = AK.T @ Pg @ AK - Pg + system.Q + Kg.T @ system.R @ Kg
@@ -112,10 +111,12 @@ def _worst_block(system: CoupledSystem, K: list[np.ndarray]) -> str:
 
 def lqr_gains(system: CoupledSystem) -> GainDesign:
     """Per-subsystem DARE gains, verified on the coupled system."""
+    from scipy.linalg import solve_discrete_are
+
     K, P = [], []
     for s in system.subsystems:
         try:
-            Pi = sla.solve_discrete_are(s.A, s.B, s.Q, s.R)
+            Pi = solve_discrete_are(s.A, s.B, s.Q, s.R)
         except (np.linalg.LinAlgError, ValueError) as exc:
             raise DesignError(f"gains (lqr): the Riccati equation of subsystem {s.name} has no solution: {exc}") from None
         Ki = -np.linalg.solve(s.R + s.B.T @ Pi @ s.B, s.B.T @ Pi @ s.A)
@@ -147,17 +148,18 @@ def lmi_gains(system: CoupledSystem) -> GainDesign:
 def _solve_lmi(system: CoupledSystem, scaling: list[np.ndarray] | None, objective: str):
     """Return per-subsystem X_i (n_i, n_i) and Y_i (m_i, n_i) in original coordinates."""
     import cvxpy as cp
+    from scipy.linalg import sqrtm
 
     subs = system.subsystems
     if scaling is None:
         scaling = [np.ones(s.n) for s in subs]
-    D = sla.block_diag(*[np.diag(d) for d in scaling])
+    D = block_diag(*[np.diag(d) for d in scaling])
     Dinv = np.linalg.inv(D)
     # x = D x~  =>  A~ = D^-1 A D, B~ = D^-1 B, Q~ = D Q D, R unchanged
     A = Dinv @ system.A @ D
     B = Dinv @ system.B
-    Qh = sla.sqrtm(D @ system.Q @ D).real
-    Rh = sla.sqrtm(system.R).real
+    Qh = sqrtm(D @ system.Q @ D).real
+    Rh = sqrtm(system.R).real
     Xs = [cp.Variable((s.n, s.n), symmetric=True) for s in subs]
     Ys = [cp.Variable((s.m, s.n)) for s in subs]
     X = cp.bmat([[Xs[i] if i == j else np.zeros((subs[i].n, subs[j].n)) for j in range(len(subs))]

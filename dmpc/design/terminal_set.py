@@ -9,11 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
-from scipy.optimize import linprog
 
 from dmpc.design.errors import DesignError
-from dmpc.system import CoupledSystem
+from dmpc.system import CoupledSystem, block_diag
 
 REDUNDANCY_TOL = 1e-9
 
@@ -59,7 +57,7 @@ def admissible_rows(system: CoupledSystem, K: list[np.ndarray]) -> np.ndarray:
 
     Raises DesignError if the origin is not in the interior of a constraint set.
     """
-    Kg = sla.block_diag(*K)
+    Kg = block_diag(*K)
     rows = []
     for i, s in enumerate(system.subsystems):
         G, g = s.input_set.one_sided()
@@ -92,7 +90,7 @@ def maximal_admissible_set(system: CoupledSystem, K: list[np.ndarray], max_t: in
     max_t : int
         Give up (DesignError) if the recursion has not stopped after this many powers.
     """
-    AK = system.A + system.B @ sla.block_diag(*K)
+    AK = system.A + system.B @ block_diag(*K)
     base = admissible_rows(system, K)
     omega = _drop_duplicates(base)
     power = base
@@ -113,6 +111,8 @@ def _drop_duplicates(rows: np.ndarray) -> np.ndarray:
 
 def _support(omega: np.ndarray, c: np.ndarray, cap: float | None = None) -> float:
     """max c x s.t. omega x <= 1 (and c x <= cap if given); +inf if unbounded."""
+    from scipy.optimize import linprog  # offline only: keeps agent processes small
+
     A_ub, b_ub = omega, np.ones(omega.shape[0])
     if cap is not None:
         A_ub = np.vstack([omega, c])

@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linprog
 
 from dmpc.design.errors import DesignError
 from dmpc.system import CoupledSystem
@@ -117,6 +116,8 @@ def _check_nonempty(linear_set, margins: np.ndarray, what: str, first_step: int 
 
 
 def _feasible(H: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> bool:
+    from scipy.optimize import linprog  # offline only: keeps agent processes small
+
     finite_hi, finite_lo = np.isfinite(upper), np.isfinite(lower)
     A_ub = np.vstack([H[finite_hi], -H[finite_lo]])
     b_ub = np.concatenate([upper[finite_hi], -lower[finite_lo]])
