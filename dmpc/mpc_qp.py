@@ -51,9 +51,7 @@ OSQP_INFTY = 1e30
 DEFAULT_SETTINGS = dict(
     eps_abs=1e-7,
     eps_rel=1e-7,
-    eps_prim_inf=1e-8,
-    eps_dual_inf=1e-8,
-    max_iter=20000,
+    max_iter=10000,
     polishing=True,
     warm_starting=True,
     check_termination=5,
@@ -159,6 +157,8 @@ class MpcQP:
         # The wrapper's solve() builds a namespace of every info field and warns on each call;
         # the extension object underneath gives the same data without that per-solve overhead.
         self._core = getattr(self._solver, "_solver", None)
+        self._nvars = nz + nv
+        self._cold = False
 
     def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
               terminal_upper: np.ndarray) -> QPSolution:
@@ -176,6 +176,15 @@ class MpcQP:
         u[:nz] = l[:nz]
         np.clip(terminal_lower, -OSQP_INFTY, OSQP_INFTY, out=l[self._terminal])
         np.clip(terminal_upper, -OSQP_INFTY, OSQP_INFTY, out=u[self._terminal])
+        N = self.N
+        if np.any(l[self._terminal] > u[self._terminal]):
+            # an empty terminal set (e.g. beta below the tube margin): OSQP would reject the
+            # update and silently keep the previous problem, so answer here
+            return QPSolution(QPStatus.INFEASIBLE, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan),
+                              float("nan"), 0.0, 0)
+        if self._cold:
+            self._solver.warm_start(x=np.zeros(self._nvars), y=np.zeros(l.size))
+            self._cold = False
         t0 = time.perf_counter()
         if self._core is not None:
             self._core.update_data_vec(q=None, l=l, u=u)
@@ -187,8 +196,9 @@ class MpcQP:
             info, solution = res.info, res.x
         elapsed = time.perf_counter() - t0
         status = _OSQP_STATUS.get(info.status, QPStatus.ERROR)
-        N = self.N
         if not status.feasible:
+            # a failed solve leaves iterates that mislead the next warm start: start cold
+            self._cold = True
             return QPSolution(status, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan), float("nan"),
                               elapsed, info.iter)
         z = solution[:nz].reshape(N + 1, n)

@@ -42,7 +42,7 @@ def continued(plan: Plan, length: int, Gamma: np.ndarray, K: np.ndarray) -> tupl
     while len(z) < length + 1:
         z.append(Gamma @ z[-1])
     z = np.array(z[: length + 1])
-    v = np.vstack([plan.v, (K @ z[N:length].T).T]) if length > N else plan.v[:length]
+    v = np.vstack([plan.v, (K @ z[N:length].T).T]) if length > N else plan.v[:length].copy()
     return z, v
 
 

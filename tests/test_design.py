@@ -210,10 +210,14 @@ def test_lqr_rejection_is_right():
 
 # ---------------------------------------------------------------- negative cases
 
-def test_printed_k2_is_rejected_as_unstable():
-    K2 = np.array([[0.7452, -1.113]])
+@pytest.mark.parametrize("K2, expected_rho22", [
+    ([[0.7452, 1.113]], 3.42),    # as printed in the paper: both minus signs lost
+    ([[0.7452, -1.113]], 1.793),  # only the first minus sign lost
+])
+def test_printed_k2_is_rejected_as_unstable(K2, expected_rho22):
+    K2 = np.array(K2)
     rho22 = float(np.max(np.abs(np.linalg.eigvals(A_II + B_II @ K2))))
-    assert rho22 > 1.0  # independently: the printed K_2 destabilises its own subsystem
+    assert rho22 == pytest.approx(expected_rho22, abs=5e-3)  # independently: it destabilises its own subsystem
     with pytest.raises(DesignError, match=r"unstable.*spectral radius") as info:
         prepare(load_scenario(PAPER, {"subsystems.1.K": K2.tolist()}))
     assert f"{rho22:.4g}" in str(info.value)

@@ -4,7 +4,7 @@ The cvxpy problems are parametrised (x, c, alpha, beta) and built once per varia
 hypothesis comparisons use a fresh LocalQP per example (the QP itself); reusing one LocalQP
 over a sequence of instances (OSQP warm start, only bounds updated) is tested separately:
 over feasible instances it must give the fresh answers, and over a sequence that contains
-infeasible instances it currently does not (source bug, see the xfail test at the end).
+infeasible instances its verdicts must still be right.
 """
 from __future__ import annotations
 
@@ -242,10 +242,6 @@ def test_reused_instance_matches_fresh_solves_on_feasible_instances(polytope_var
         done += 1
 
 
-@pytest.mark.xfail(strict=True, reason="source bug: dmpc/mpc_qp.py (used by LocalQP) keeps OSQP's state across "
-                   "solves and sets eps_prim_inf=1e-8; after infeasible solves, clearly infeasible QPs end as "
-                   "MAX_ITER after 20000 iterations and once a clearly feasible QP (LP margin -0.96) is "
-                   "reported MAX_ITER; a fresh LocalQP gives INFEASIBLE / SOLVED for the same instances")
 def test_reused_instance_verdicts_after_infeasible_solves(polytope_variant):
     v = polytope_variant
     qp = LocalQP(v.sub, v.P, N, v.tight)
@@ -330,9 +326,6 @@ def test_status_values_are_the_wire_strings():
     assert {s for s in QPStatus if s.feasible} == {QPStatus.SOLVED, QPStatus.INACCURATE}
 
 
-@pytest.mark.xfail(strict=True, reason="source bug: agents/local_qp.py LocalQP.solve passes l > u to OSQP when "
-                   "beta < terminal_margin; OSQP rejects the update (prints 'Problem data validation') and "
-                   "solve() returns the previous solution as SOLVED instead of INFEASIBLE")
 def test_terminal_box_emptied_by_tightening_is_infeasible():
     sub = paper_subsystem()
     tight = Tightening(np.zeros((N, 1)), np.zeros((N + 1, 0)), np.array([0.3, 0.3]))

@@ -81,9 +81,6 @@ def test_assumed_states_are_a_copy(plan):
     np.testing.assert_array_equal(plan.z, z0)
 
 
-@pytest.mark.xfail(strict=True, reason="source bug (latent, low severity): dmpc/trajectories.py continued() returns "
-                   "plan.v[:length] (a view) when length <= N, so assumed_trajectory(plan, plan.k, ...) returns "
-                   "vhat aliasing the (frozen) Plan's v; z is copied, v is not")
 def test_assumed_inputs_are_a_copy(plan):
     for k in (5, 6, 8):
         _, vhat = assumed_trajectory(plan, k, X_NOW, N, GAMMA, K)
