@@ -25,11 +25,15 @@ class DecodeError(ValueError):
     """A payload that is not a valid message; the text says what is wrong."""
 
 
+_FIELDS: dict[type, tuple[str, ...]] = {cls: tuple(f.name for f in fields(cls)) for cls in MESSAGE_TYPES.values()}
+_FIELD_SETS: dict[type, frozenset] = {cls: frozenset(names) for cls, names in _FIELDS.items()}
+
+
 def encode(msg: Message) -> bytes:
     """Serialise a message to bytes."""
     body = {"schema": SCHEMA_VERSION, "type": TYPE_NAMES[type(msg)]}
-    for f in fields(msg):
-        body[f.name] = _to_wire(getattr(msg, f.name))
+    for name in _FIELDS[type(msg)]:
+        body[name] = _to_wire(getattr(msg, name))
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -64,7 +68,7 @@ def decode(payload: bytes) -> Message:
     cls = MESSAGE_TYPES.get(body.get("type")) if isinstance(body.get("type"), str) else None
     if cls is None:
         raise DecodeError(f"unknown message type {body.get('type')!r}")
-    expected = {f.name for f in fields(cls)}
+    expected = _FIELD_SETS[cls]
     present = set(body) - {"schema", "type"}
     if present != expected:
         missing, extra = sorted(expected - present), sorted(map(str, present - expected))
@@ -101,15 +105,18 @@ def _array(value, name: str, ndim: int, allow_nan: bool = False) -> np.ndarray:
     if value["dtype"] != "<f8":
         raise DecodeError(f"{name}: dtype {value['dtype']!r:.20} is not <f8")
     shape = value["shape"]
-    if (not isinstance(shape, list) or len(shape) != ndim
-            or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_ARRAY_ELEMENTS for s in shape)):
+    if not isinstance(shape, list) or len(shape) != ndim:
         raise DecodeError(f"{name}: shape must be {ndim} non-negative integers")
+    for s in shape:
+        if type(s) is not int or not 0 <= s <= MAX_ARRAY_ELEMENTS:
+            raise DecodeError(f"{name}: shape must be {ndim} non-negative integers")
     count = math.prod(shape)
     data = value["data"]
     if not isinstance(data, bytes) or count > MAX_ARRAY_ELEMENTS or len(data) != 8 * count:
         raise DecodeError(f"{name}: data length does not match shape {shape}")
-    arr = np.frombuffer(data, dtype="<f8").reshape(shape).astype(float)
-    if np.isinf(arr).any() or (np.isnan(arr).any() and not allow_nan):
+    # read-only view on the payload: nothing downstream writes into received arrays
+    arr = np.frombuffer(data, dtype="<f8").reshape(shape)
+    if not np.isfinite(arr).all() and (not allow_nan or np.isinf(arr).any()):
         raise DecodeError(f"{name}: non-finite values")
     return arr
 

@@ -170,7 +170,7 @@ def agent(scenario: ScenarioArg,
           set_: SetOpt = None) -> None:
     """Run one subsystem's agent on the Zenoh bus until the plant stops the run."""
     from dmpc.agents.process import run_agent
-    from dmpc.runtime.memory import trim_heap
+    from dmpc.runtime.memory import settle_after_startup
     from dmpc.runtime.signals import sigterm_as_interrupt
 
     if mode not in ("peer", "client"):
@@ -181,7 +181,7 @@ def agent(scenario: ScenarioArg,
         raise InputError(f"--id: no subsystem {id_!r} in the scenario (subsystems: {', '.join(prepared.names)})")
     rid = _run_id(run_id, prepared)
     bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout)
-    trim_heap()
+    settle_after_startup()
     try:
         outcome = run_agent(prepared, id_, bus, rid, startup_timeout)
     except KeyboardInterrupt:
@@ -207,6 +207,7 @@ def plant(scenario: ScenarioArg,
           set_: SetOpt = None) -> None:
     """Run the plant and step barrier: wait for every agent, step, record."""
     from dmpc.plant.process import run_plant
+    from dmpc.runtime.memory import settle_after_startup
     from dmpc.records.report import print_summary
     from dmpc.records.session import RunRecorder
     from dmpc.runtime.signals import sigterm_as_interrupt
@@ -217,6 +218,7 @@ def plant(scenario: ScenarioArg,
     prepared = _prepare_for_process(scenario, set_, design_file, steps)
     rid = _run_id(run_id, prepared)
     bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout)
+    settle_after_startup()
     try:
         with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
             outcome = run_plant(prepared, recorder, bus, rid, startup_timeout)

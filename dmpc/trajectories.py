@@ -38,11 +38,15 @@ def continued(plan: Plan, length: int, Gamma: np.ndarray, K: np.ndarray) -> tupl
     v : ndarray, shape (length, m)
     """
     N = plan.v.shape[0]
-    z = [row for row in plan.z]
-    while len(z) < length + 1:
-        z.append(Gamma @ z[-1])
-    z = np.array(z[: length + 1])
-    v = np.vstack([plan.v, (K @ z[N:length].T).T]) if length > N else plan.v[:length].copy()
+    if length <= N:
+        return plan.z[: length + 1].copy(), plan.v[:length].copy()
+    z = np.empty((length + 1, plan.z.shape[1]))
+    z[: N + 1] = plan.z
+    for t in range(N + 1, length + 1):
+        z[t] = Gamma @ z[t - 1]
+    v = np.empty((length, plan.v.shape[1]))
+    v[:N] = plan.v
+    v[N:] = z[N:length] @ K.T
     return z, v
 
 

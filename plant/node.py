@@ -139,13 +139,29 @@ class PlantNode:
             self._carry_out(self.coordinator.start())
 
     def _carry_out(self, actions: list) -> None:
+        # finish the step's timing now, but write the record after the next releases are out
+        completed = []
+        for action in actions:
+            if isinstance(action, StepCompleted):
+                rec = action.record
+                rec.step_time = self.bus.now() - self._step_opened_at
+                rec.latency = [self._received_at.get(name, float("nan")) - self._sent_at.get(name, float("nan"))
+                               if rec.status[i] != "missed" else float("nan") for i, name in enumerate(self.names)]
+                completed.append(rec)
+        try:
+            self._dispatch([a for a in actions if not isinstance(a, StepCompleted)])
+        finally:
+            for rec in completed:
+                self.on_step(rec)
+
+    def _dispatch(self, actions: list) -> None:
         for n, action in enumerate(actions):
             if isinstance(action, SendRelease):
                 rel = action.release
                 if self.mode == "realtime" and rel.iteration == 0 and rel.k > 0:
                     wait = self._t0 + rel.k * self.dt - self.bus.now()
                     if wait > 0:
-                        self.bus.call_later(wait, lambda rest=actions[n:]: self._carry_out(rest))
+                        self.bus.call_later(wait, lambda rest=actions[n:]: self._dispatch(rest))
                         return
                 self.bus.publish(keys.release(self.run_id, rel.target), encode(rel))
             elif isinstance(action, RoundOpened):
@@ -155,12 +171,6 @@ class PlantNode:
                 if self.deadline is not None:
                     k, r = action.k, action.iteration
                     self.bus.call_later(self.deadline, lambda k=k, r=r: self._carry_out(self.coordinator.on_deadline(k, r)))
-            elif isinstance(action, StepCompleted):
-                rec = action.record
-                rec.step_time = self.bus.now() - self._step_opened_at
-                rec.latency = [self._received_at.get(name, float("nan")) - self._sent_at.get(name, float("nan"))
-                               if rec.status[i] != "missed" else float("nan") for i, name in enumerate(self.names)]
-                self.on_step(rec)
             elif isinstance(action, RunFinished):
                 self._stop(action.reason)
 

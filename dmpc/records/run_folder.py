@@ -25,8 +25,10 @@ class RunFolderError(Exception):
 
 def _jsonable(value):
     if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
+        return _array_json(value)
     if isinstance(value, (list, tuple)):
+        if value and all(isinstance(v, np.ndarray) for v in value):
+            return [_array_json(v) for v in value]
         return [_jsonable(v) for v in value]
     if isinstance(value, dict):
         return {k: _jsonable(v) for k, v in value.items()}
@@ -38,6 +40,15 @@ def _jsonable(value):
     if isinstance(value, np.bool_):
         return bool(value)
     return value
+
+
+def _array_json(a: np.ndarray) -> list:
+    """Nested lists with NaN and inf as None (strict JSON), without a Python-level walk."""
+    if a.dtype.kind != "f" or np.isfinite(a).all():
+        return a.tolist()
+    obj = a.astype(object)
+    obj[~np.isfinite(a)] = None
+    return obj.tolist()
 
 
 def write_json(path: Path, data) -> None:
@@ -83,7 +94,7 @@ class RunFolder:
             "status": rec.status, "fallback": rec.fallback, "fallback_reason": rec.fallback_reason,
             "solve_time": rec.solve_time, "qp_iterations": rec.qp_iterations, "latency": rec.latency,
             "step_time": rec.step_time, "x_next": rec.x_next, "alpha_next": rec.alpha_next,
-            "beta_next": rec.beta_next, "plans_z": rec.plans_z, "plans_v": rec.plans_v, "note": rec.note,
+            "beta_next": rec.beta_next, "note": rec.note,
         }
         self._log.write(json.dumps(_jsonable(line)) + "\n")
         self._log.flush()
