@@ -306,17 +306,16 @@ def main() -> None:
     except KeyboardInterrupt:
         error_line("interrupted")
         sys.exit(EXIT_INTERRUPTED)
-    except Exception as exc:  # click usage errors and aborts
-        import click
-
-        if isinstance(exc, click.exceptions.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
-        if isinstance(exc, click.exceptions.Abort):
-            error_line("aborted")
-            sys.exit(EXIT_INTERRUPTED)
-        raise
-
+    except typer.Abort:
+        error_line("aborted")
+        sys.exit(EXIT_INTERRUPTED)
+    except typer.TyperException as exc:  # usage errors: unknown option, missing argument, bad value
+        show = getattr(exc, "show", None)
+        if show is not None:
+            show()
+        else:
+            error_line(str(exc))
+        sys.exit(getattr(exc, "exit_code", EXIT_INPUT))
 
 if __name__ == "__main__":
     main()
