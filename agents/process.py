@@ -38,7 +38,7 @@ def run_agent(prepared: Prepared, name: str, bus: Bus, run_id: str, startup_time
     """
     index = prepared.names.index(name)
     controller = AgentController(prepared.system, prepared.design, index,
-                                 coupling=prepared.scenario.options.coupling)
+                                 coupling=prepared.coupling)
     node = AgentNode(bus, controller, prepared.names, run_id, prepared.digest, plan_wait=prepared.plan_wait)
     node.announce()
     started = bus.run(until=lambda: node.released or node.stopped or node.plant_lost, timeout=startup_timeout)

@@ -156,11 +156,27 @@ def session_config(
     elif mode == "peer" and not _explicit_listen(config):
         local = not multicast and all(is_loopback(e) for e in connect)
         _insert(config, "listen/endpoints", ["tcp/127.0.0.1:0" if local else "tcp/0.0.0.0:0"])
+    if not config_file:
+        _compact_transport(config)
     if lease_ms is not None:
         _insert(config, "transport/link/tx/lease", int(lease_ms))
     if tls is not None:
         _insert_tls(config, tls)
     return config
+
+
+def _compact_transport(config: zenoh.Config) -> None:
+    """Transport buffers sized for this protocol's messages (well under 16 KiB each).
+
+    Zenoh's defaults (64 KiB batches, two per priority queue on every link, a 16 MiB shared
+    memory pool) cost several MB per process in a mesh of agents. Batch sizes are negotiated
+    per link, so a peer with default settings still talks to these processes.
+    """
+    _insert(config, "transport/link/tx/batch_size", 16384)
+    _insert(config, "transport/link/tx/queue/size", {"control": 1, "real_time": 2, "interactive_high": 1,
+                                                      "interactive_low": 1, "data_high": 1, "data": 2,
+                                                      "data_low": 1, "background": 1})
+    _insert(config, "transport/shared_memory/enabled", False)
 
 
 def _explicit_listen(config: zenoh.Config) -> bool:

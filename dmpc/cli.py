@@ -6,12 +6,12 @@ import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
+import click
 import typer
 
 from dmpc.console import error_line, silence_c_stdout, stdout_console
 from dmpc.design import DesignError
 from dmpc.records.run_folder import RunFolderError
-from dmpc.scenario import ScenarioError, load_scenario, parse_override
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -40,6 +40,8 @@ def _default_out(out: Path | None, scenario_name: str) -> Path:
 
 
 def _load(path: Path, overrides: list[str] | None, steps: int | None = None):
+    from dmpc.scenario import load_scenario, parse_override
+
     pairs = {}
     for text in overrides or []:
         key, value = parse_override(text)
@@ -96,7 +98,7 @@ def simulate(scenario: ScenarioArg,
     from dmpc.records.session import RunRecorder
 
     prepared = _prepare(scenario, set_, steps)
-    out = _default_out(out, prepared.scenario.name)
+    out = _default_out(out, prepared.name)
     with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
         run = run_inprocess(prepared, recorder.on_step)
         summary = recorder.complete(runtime="in-process", failure=run.plant.failure or None,
@@ -120,6 +122,17 @@ ZenohConfigOpt = Annotated[Optional[Path], typer.Option("--zenoh-config", help="
 def _prepare_for_process(scenario: Path, set_: list[str] | None, design_file: Path | None, steps: int | None = None):
     from dmpc.runtime.setup import prepare
 
+    if scenario.suffix == ".json":
+        # a run bundle written by ``dmpc run`` (no scenario schema needed: smaller, faster agents)
+        from dmpc.runtime.bundle import load_bundle
+
+        if set_ or design_file or steps:
+            raise InputError("--set, --design and --steps do not apply to a run bundle (.json)")
+        try:
+            return load_bundle(scenario)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+
     scn = _load(scenario, set_, steps)
     data = None
     if design_file is not None:
@@ -135,7 +148,7 @@ def _run_id(given: str | None, prepared) -> str:
 
     import re
 
-    rid = given or re.sub(r"[^A-Za-z0-9_.-]", "-", prepared.scenario.name)[:64]
+    rid = given or re.sub(r"[^A-Za-z0-9_.-]", "-", prepared.name)[:64]
     try:
         return keys.check_chunk(rid, "run id")
     except ValueError as exc:
@@ -278,8 +291,8 @@ def run(scenario: ScenarioArg,
     from dmpc.runtime.setup import prepare
 
     prepared = prepare(_load(scenario, set_, steps))
-    out = _default_out(out, prepared.scenario.name)
-    rid = _run_id(run_id or f"{prepared.scenario.name}-{secrets.token_hex(4)}", prepared)
+    out = _default_out(out, prepared.name)
+    rid = _run_id(run_id or f"{prepared.name}-{secrets.token_hex(4)}", prepared)
     result = launch(prepared, out, rid, startup_timeout=startup_timeout, show_progress=not quiet)
     if result.summary is not None:
         print_summary(result.summary, out)
@@ -290,6 +303,12 @@ def run(scenario: ScenarioArg,
     raise typer.Exit(result.code)
 
 
+def _is_scenario_error(exc: Exception) -> bool:
+    """ScenarioError, checked lazily: the scenario package (pydantic) is not always loaded."""
+    module = sys.modules.get("dmpc.scenario.load")
+    return module is not None and isinstance(exc, module.ScenarioError)
+
+
 def main() -> None:
     """Console entry point: maps expected errors to one line and exit code 2."""
     silence_c_stdout()
@@ -298,24 +317,26 @@ def main() -> None:
         code = app(standalone_mode=False)
         if isinstance(code, int) and code != 0:
             sys.exit(code)
-    except (ScenarioError, DesignError, RunFolderError, InputError) as exc:
+    except (DesignError, RunFolderError, InputError) as exc:
         error_line(str(exc))
         sys.exit(EXIT_INPUT)
-    except typer.Exit as exc:
+    except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
         error_line("interrupted")
         sys.exit(EXIT_INTERRUPTED)
-    except typer.Abort:
+    except click.exceptions.Abort:
         error_line("aborted")
         sys.exit(EXIT_INTERRUPTED)
-    except typer.TyperException as exc:  # usage errors: unknown option, missing argument, bad value
-        show = getattr(exc, "show", None)
-        if show is not None:
-            show()
-        else:
-            error_line(str(exc))
-        sys.exit(getattr(exc, "exit_code", EXIT_INPUT))
+    except click.ClickException as exc:  # usage errors: unknown option, missing argument, bad value
+        exc.show()
+        sys.exit(exc.exit_code)
+    except Exception as exc:
+        if not _is_scenario_error(exc):
+            raise
+        error_line(str(exc))
+        sys.exit(EXIT_INPUT)
+
 
 if __name__ == "__main__":
     main()

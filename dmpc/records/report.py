@@ -12,7 +12,7 @@ def design_report(prepared: Prepared) -> Table:
     """A table of the design's figures and gains."""
     d = prepared.design
     g = d.gains
-    table = Table(title=f"design of '{prepared.scenario.name}'", show_header=False)
+    table = Table(title=f"design of '{prepared.name}'", show_header=False)
     table.add_column("what", style="bold")
     table.add_column("value")
     table.add_row("gains", f"{g.method}" + (f" ({g.objective})" if g.objective else ""))

@@ -53,7 +53,7 @@ class RunRecorder:
         """Write the arrays and the summary; returns the summary."""
         if self._progress is not None:
             self._progress.stop()
-        info = {"scenario": self.prepared.scenario.name, "design_digest": self.prepared.digest, "method": "tv-box",
+        info = {"scenario": self.prepared.name, "design_digest": self.prepared.digest, "method": "tv-box",
                 "wall_time_s": time.monotonic() - self._started, "rejected": {}, "duplicates": 0}
         info.update({k: v for k, v in extra.items() if v is not None})
         self.summary = self.folder.finish(info)

@@ -46,7 +46,7 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
                       dt=prepared.dt, deadline=prepared.deadline)
     agents = []
     for i, name in enumerate(prepared.names):
-        controller = AgentController(system, design, i, coupling=prepared.scenario.options.coupling)
+        controller = AgentController(system, design, i, coupling=prepared.coupling)
         agents.append(AgentNode(view(bus, name), controller, prepared.names, run_id, prepared.digest,
                                 plan_wait=prepared.plan_wait))
     plant.announce()

@@ -22,10 +22,12 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from dmpc.console import stderr_console
 from dmpc.records.run_folder import STEP_LOG, RunFolderError, write_json
+from dmpc.runtime.bundle import write_bundle
 from dmpc.runtime.setup import Prepared
 from dmpc.scenario import dump_resolved
 
 STOP_GRACE = 3.0
+BUNDLE = "run.json"
 PR_SET_PDEATHSIG = 1
 
 
@@ -79,6 +81,7 @@ def prepare_run_folder(out: Path, prepared: Prepared) -> tuple[Path, Path]:
     scenario_path.write_text(dump_resolved(prepared.scenario))
     design_path = out / "design.json"
     write_json(design_path, prepared.design_json())
+    write_bundle(prepared, out / BUNDLE)
     return scenario_path, design_path
 
 
@@ -93,9 +96,10 @@ def child_commands(prepared: Prepared, out: Path, scenario_path: Path, design_pa
     logs.mkdir(exist_ok=True)
     children = [Child("plant", base + ["plant", str(scenario_path), "--out", str(out), "--listen", endpoint,
                                        "--quiet"] + common, logs / "plant.log")]
+    agent_common = [arg for arg in common if arg not in ("--design", str(design_path))]
     for name in prepared.names:
-        children.append(Child(f"agent-{name}", base + ["agent", str(scenario_path), "--id", name, "--connect", endpoint,
-                                                       "--listen", "tcp/127.0.0.1:0"] + common,
+        children.append(Child(f"agent-{name}", base + ["agent", str(out / BUNDLE), "--id", name, "--connect", endpoint,
+                                                       "--listen", "tcp/127.0.0.1:0"] + agent_common,
                               logs / f"agent-{name}.log"))
     return children
 

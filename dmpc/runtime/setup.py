@@ -1,6 +1,8 @@
 """From a validated scenario to everything a run needs (system, design, protocol settings)."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import hashlib
 import json
 from dataclasses import dataclass
@@ -10,8 +12,10 @@ import numpy as np
 from dmpc.bus.faults import FaultPlan, LinkFault
 from dmpc.design import Design, design_from_json, design_system
 from dmpc.plant.barrier import ProtocolOptions
-from dmpc.scenario import Scenario, alpha0_vector, build_system, given_gains, revision_bounds
 from dmpc.system import CoupledSystem
+
+if TYPE_CHECKING:  # the scenario package needs pydantic, which agent processes can do without
+    from dmpc.scenario import Scenario
 
 
 @dataclass(frozen=True)
@@ -20,7 +24,8 @@ class Prepared:
 
     Attributes
     ----------
-    scenario : Scenario
+    scenario : Scenario or None
+        None when loaded from a run bundle (dmpc.runtime.bundle).
     system : CoupledSystem
     design : Design
     digest : str
@@ -29,9 +34,14 @@ class Prepared:
     mode : str
     dt : float
     deadline : float or None
+    faults : FaultPlan
+    name : str
+        The scenario's name.
+    coupling : str
+        ``feedforward`` or ``nominal``.
     """
 
-    scenario: Scenario
+    scenario: "Scenario | None"
     system: CoupledSystem
     design: Design
     digest: str
@@ -40,6 +50,8 @@ class Prepared:
     dt: float
     deadline: float | None
     faults: FaultPlan = FaultPlan()
+    name: str = "scenario"
+    coupling: str = "feedforward"
 
     @property
     def names(self) -> list[str]:
@@ -59,6 +71,8 @@ class Prepared:
 
 def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | None = None) -> Design:
     """Run the offline design the scenario asks for, or rebuild it from ``design.json`` content."""
+    from dmpc.scenario import alpha0_vector, given_gains, revision_bounds
+
     kwargs = dict(horizon=scenario.horizon, alpha0=alpha0_vector(scenario, system), beta0=scenario.terminal.beta0,
                   tube=scenario.options.tube, revision_bounds=revision_bounds(scenario))
     if design_data is not None:
@@ -75,6 +89,8 @@ def design_digest(design: Design) -> str:
 def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | None = None) -> Prepared:
     """Build the system and the design; ``steps`` overrides the scenario's; ``design_data``
     (``design.json`` content) skips the offline solves."""
+    from dmpc.scenario import build_system
+
     system = build_system(scenario)
     design = design_for(scenario, system, design_data)
     opts = scenario.options
@@ -84,7 +100,8 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
     if deadline is None and opts.mode == "realtime":
         deadline = opts.dt
     return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design),
-                    protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario))
+                    protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario),
+                    name=scenario.name, coupling=opts.coupling)
 
 
 def fault_plan(scenario: Scenario) -> FaultPlan:
