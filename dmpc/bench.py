@@ -1,0 +1,246 @@
+"""Benchmarks of this machine: QP, multi-process steps, memory, design, and baselines.
+
+Everything ``dmpc bench`` measures, as functions returning plain dicts. The multi-process
+figures come from real ``dmpc run`` processes; the in-process and centralised figures from
+closed loops of the same scenario, so the closed-loop costs can be compared side by side.
+"""
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+from dmpc.records.run_folder import stage_cost
+
+
+def machine() -> dict:
+    return {"machine": platform.machine(), "cores": psutil.cpu_count(logical=True),
+            "memory_gib": round(psutil.virtual_memory().total / 2**30, 1), "python": platform.python_version()}
+
+
+def chain_overrides(M: int, steps: int, horizon: int | None = None) -> tuple[str, dict]:
+    """The paper's example for M = 4, the chain family otherwise."""
+    overrides: dict = {"steps": steps}
+    if horizon is not None:
+        overrides["horizon"] = horizon
+    if M == 4:
+        return "scenarios/paper.yaml", overrides
+    overrides["family.M"] = M
+    return "scenarios/chain.yaml", overrides
+
+
+def _prepare(M: int, steps: int, horizon: int | None = None, root: Path = Path(".")):
+    from dmpc.runtime.setup import prepare
+    from dmpc.scenario import load_scenario
+
+    path, overrides = chain_overrides(M, steps, horizon)
+    return prepare(load_scenario(root / path, overrides))
+
+
+# ---------------------------------------------------------------------------- local QP
+def qp_solve_times(horizon: int, repeat: int, root: Path = Path(".")) -> dict:
+    """Replay the QPs one agent of the paper's example solves in a closed loop (30 steps)."""
+    from dmpc.agents.local_qp import LocalQP
+    from dmpc.runtime.inprocess import simulate
+
+    prepared = _prepare(4, 30, horizon, root)
+    agent = 1
+    calls: list[tuple] = []
+    original = LocalQP.solve
+
+    def recording(self, x, c, alpha, beta):
+        if getattr(self, "_bench_record", False):
+            calls.append((x.copy(), c.copy(), alpha.copy(), beta))
+        return original(self, x, c, alpha, beta)
+
+    LocalQP.solve = recording
+    try:
+        from dmpc.runtime import inprocess
+
+        build = inprocess.build_run
+
+        def marking(*args, **kwargs):
+            run = build(*args, **kwargs)
+            run.agents[agent].controller.qp._bench_record = True
+            return run
+
+        inprocess.build_run = marking
+        try:
+            simulate(prepared, lambda record: None)
+        finally:
+            inprocess.build_run = build
+    finally:
+        LocalQP.solve = original
+    sub = prepared.system.subsystems[agent]
+    qp = LocalQP(sub, prepared.design.gains.P[agent], horizon, prepared.design.tightening[agent])
+    times = []
+    for _ in range(repeat):
+        for x, c, alpha, beta in calls:
+            t0 = time.perf_counter()
+            qp.solve(x, c, alpha, beta)
+            times.append(time.perf_counter() - t0)
+    t = np.array(times) * 1e6
+    return {"N": horizon, "solves": int(t.size), "us_p50": float(np.median(t)), "us_p99": float(np.percentile(t, 99))}
+
+
+# ---------------------------------------------------------------------------- multi-process
+def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), timeout: float = 900) -> dict:
+    """``dmpc run`` in lockstep; step time, the bus's share, memory per process."""
+    path, overrides = chain_overrides(M, steps)
+    out = workdir / f"run-M{M}"
+    cmd = [sys.executable, "-m", "dmpc.cli", "run", path, "--out", str(out), "--quiet", "--startup-timeout", "600"]
+    cmd += [arg for k, v in overrides.items() for arg in ("--set", f"{k}={v}")]
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    peak: dict[str, tuple[float, float]] = {}
+    try:
+        while proc.poll() is None:
+            if time.monotonic() - t0 > timeout:
+                proc.send_signal(2)
+                proc.wait(30)
+                return {"M": M, "completed": False, "reason": f"timeout after {timeout:.0f} s"}
+            time.sleep(0.5)
+            _sample_memory(out, peak)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    wall = time.monotonic() - t0
+    if proc.returncode != 0:
+        return {"M": M, "completed": False, "reason": proc.stderr.read().decode(errors="replace")[-600:]}
+    data = np.load(out / "trajectory.npz")
+    step = data["step_time"][1:] * 1e3
+    slowest = np.nanmax(data["solve_time"][1:], axis=1) * 1e3
+    agents = [v for k, v in peak.items() if k.startswith("agent-")]
+    summary = json.loads((out / "summary.json").read_text())
+    return {
+        "M": M, "completed": True, "steps": int(data["step_time"].size), "wall_s": wall,
+        "step_ms_p50": float(np.median(step)), "step_ms_p99": float(np.percentile(step, 99)),
+        "step0_ms": float(data["step_time"][0] * 1e3), "bus_ms_p50": float(np.median(step - slowest)),
+        "bus_share_p50": float(np.median((step - slowest) / step)),
+        "rss_mb_per_agent": max(a[0] for a in agents) if agents else None,
+        "pss_mb_per_agent": max(a[1] for a in agents) if agents else None,
+        "rss_mb_plant": peak.get("plant", (None, None))[0],
+        "rss_mb_total": sum(v[0] for v in peak.values()), "pss_mb_total": sum(v[1] for v in peak.values()),
+        "closed_loop_cost": summary["closed_loop_cost"], "feasible": summary["feasible"],
+    }
+
+
+def _sample_memory(out: Path, peak: dict) -> None:
+    try:
+        pids = json.loads((out / "processes.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return
+    if not (out / "steps.jsonl").exists():
+        return  # still starting: sample the steady state only
+    for role, pid in pids.items():
+        try:
+            full = psutil.Process(pid).memory_full_info()
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        rss, pss = full.rss / 2**20, getattr(full, "pss", full.rss) / 2**20
+        old = peak.get(role, (0.0, 0.0))
+        peak[role] = (max(old[0], rss), max(old[1], pss))
+
+
+# ---------------------------------------------------------------------------- in process / centralised
+def _closed_loop(step: Callable[[np.ndarray], np.ndarray], system, steps: int) -> dict:
+    x = system.x0.copy()
+    cost, times = 0.0, []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        u = step(x)
+        times.append(time.perf_counter() - t0)
+        cost += stage_cost(system, x, u)
+        x = system.A @ x + system.B @ u
+    t = np.array(times[1:]) * 1e3
+    return {"step_ms_p50": float(np.median(t)), "step_ms_p99": float(np.percentile(t, 99)), "closed_loop_cost": cost,
+            "final_state_norm_inf": float(np.max(np.abs(x)))}
+
+
+def run_inprocess(M: int, steps: int, root: Path = Path(".")) -> dict:
+    from dmpc.runtime.inprocess import simulate
+
+    prepared = _prepare(M, steps, root=root)
+    records, stamps = [], []
+
+    def on_step(record):
+        records.append(record)
+        stamps.append(time.perf_counter())
+
+    t0 = time.perf_counter()
+    simulate(prepared, on_step)
+    t = np.diff([t0] + stamps)[1:] * 1e3
+    cost = sum(stage_cost(prepared.system, r.x, r.u) for r in records)
+    return {"M": M, "step_ms_p50": float(np.median(t)), "step_ms_p99": float(np.percentile(t, 99)),
+            "closed_loop_cost": cost}
+
+
+def run_central_osqp(M: int, steps: int, root: Path = Path(".")) -> dict:
+    from dmpc.centralized import CentralQP
+
+    prepared = _prepare(M, steps, root=root)
+    qp = CentralQP(prepared.system, prepared.design.gains.P_global(), prepared.design.horizon, "omega",
+                   prepared.design.terminal.omega)
+
+    def step(x):
+        sol = qp.solve(x)
+        return sol.v[0] if sol.status.feasible else np.zeros(prepared.system.m)
+
+    return {"M": M, **_closed_loop(step, prepared.system, steps)}
+
+
+def run_central_cvxpy(M: int, steps: int, root: Path = Path(".")) -> dict:
+    """The centralised MPC as commonly written by hand: a cvxpy problem re-solved each step."""
+    import cvxpy as cp
+
+    prepared = _prepare(M, steps, root=root)
+    s, N = prepared.system, prepared.design.horizon
+    P = prepared.design.gains.P_global()
+    omega = prepared.design.terminal.omega
+    x0 = cp.Parameter(s.n)
+    z = cp.Variable((N + 1, s.n))
+    v = cp.Variable((N, s.m))
+    ubar = np.concatenate([sub.input_set.upper for sub in s.subsystems])
+    cons = [z[0] == x0, omega @ z[N] <= 1, cp.abs(v) <= np.tile(ubar, (N, 1))]
+    cons += [z[t + 1] == s.A @ z[t] + s.B @ v[t] for t in range(N)]
+    obj = sum(cp.quad_form(z[t], s.Q) + cp.quad_form(v[t], s.R) for t in range(N)) + cp.quad_form(z[N], P)
+    problem = cp.Problem(cp.Minimize(obj), cons)
+
+    def step(x):
+        x0.value = x
+        problem.solve()
+        return v.value[0] if v.value is not None else np.zeros(s.m)
+
+    result = _closed_loop(step, s, steps)
+    return {"M": M, "solver": problem.solver_stats.solver_name if problem.solver_stats else "?", **result}
+
+
+# ---------------------------------------------------------------------------- design
+def design_scaling(M: int, root: Path = Path(".")) -> dict:
+    from dmpc.design.gains import lmi_gains
+    from dmpc.design.terminal_set import maximal_admissible_set
+    from dmpc.scenario import build_system, load_scenario
+
+    path, overrides = chain_overrides(M, 1)
+    overrides["design.gains"] = "lmi"
+    system = build_system(load_scenario(root / path, overrides))
+    t0 = time.perf_counter()
+    gains = lmi_gains(system)
+    t1 = time.perf_counter()
+    terminal = maximal_admissible_set(system, gains.K)
+    t2 = time.perf_counter()
+    return {"M": M, "lmi_s": t1 - t0, "terminal_set_s": t2 - t1, "omega_rows": terminal.rows,
+            "t_star": terminal.t_star}
+
+
+def workdir() -> tempfile.TemporaryDirectory:
+    return tempfile.TemporaryDirectory(prefix="dmpc-bench-")

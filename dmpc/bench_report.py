@@ -1,0 +1,158 @@
+"""``dmpc bench``: run the benchmarks of dmpc.bench and write benchmarks/RESULTS.md."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from rich.progress import Progress
+
+from dmpc import bench
+from dmpc.console import stderr_console
+
+FULL = {"qp_horizons": [5, 10, 20], "qp_repeat": 20,
+        "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
+        "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128]}
+QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 100)], "baselines": [4], "baseline_steps": 30,
+         "design": [4, 8]}
+
+
+def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
+    plan = QUICK if quick else FULL
+    tasks = (len(plan["qp_horizons"]) + len(plan["runtime"]) + 3 * len(plan["baselines"]) + len(plan["design"]))
+    results: dict = {"machine": bench.machine(), "quick": quick, "qp": [], "runtime": [], "inprocess": [],
+                     "central_osqp": [], "central_cvxpy": [], "design": []}
+    started = time.monotonic()
+    with Progress(console=stderr_console(), transient=True, disable=not show_progress) as progress, \
+            bench.workdir() as tmp:
+        task = progress.add_task("benchmarks", total=tasks)
+
+        def step(label: str) -> None:
+            progress.update(task, advance=1, description=label)
+
+        for N in plan["qp_horizons"]:
+            results["qp"].append(bench.qp_solve_times(N, plan["qp_repeat"], root))
+            step(f"QP N={N}")
+        for M, steps in plan["runtime"]:
+            results["runtime"].append(bench.run_multiprocess(M, steps, Path(tmp), root))
+            step(f"multi-process M={M}")
+        for M in plan["baselines"]:
+            results["inprocess"].append(bench.run_inprocess(M, plan["baseline_steps"], root))
+            step(f"in-process M={M}")
+            results["central_osqp"].append(bench.run_central_osqp(M, plan["baseline_steps"], root))
+            step(f"centralised OSQP M={M}")
+            results["central_cvxpy"].append(bench.run_central_cvxpy(M, plan["baseline_steps"], root))
+            step(f"centralised CVXPY M={M}")
+        for M in plan["design"]:
+            results["design"].append(bench.design_scaling(M, root))
+            step(f"design M={M}")
+    results["seconds"] = time.monotonic() - started
+    results["headline"] = headline(results)
+    return results
+
+
+def headline(results: dict) -> dict:
+    qp10 = next((q for q in results["qp"] if q["N"] == 10), None)
+    m4 = next((r for r in results["runtime"] if r["M"] == 4 and r.get("completed")), None)
+    done = [r["M"] for r in results["runtime"] if r.get("completed")]
+    return {
+        "qp_solve_us_p50": qp10["us_p50"] if qp10 else None,
+        "step_ms_p50_m4": m4["step_ms_p50"] if m4 else None,
+        "step_ms_p99_m4": m4["step_ms_p99"] if m4 else None,
+        "rss_mb_per_agent": max((r["rss_mb_per_agent"] for r in results["runtime"] if r.get("rss_mb_per_agent")),
+                                default=None),
+        "max_agents_run": max(done) if done else 0,
+    }
+
+
+def _fmt(value, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def markdown(results: dict, command: str) -> str:
+    m = results["machine"]
+    lines = ["# Benchmarks", "",
+             f"Measured on {m['machine']}, {m['cores']} cores, {m['memory_gib']} GiB, Python {m['python']}; "
+             f"{results['seconds']:.0f} s in all. Reproduce with `{command}`.", "",
+             "## Local QP (paper's subsystem, one agent's closed-loop sequence replayed, vector updates included)", "",
+             "| N | solves | median (us) | p99 (us) |", "|---|---|---|---|"]
+    lines += [f"| {q['N']} | {q['solves']} | {q['us_p50']:.1f} | {q['us_p99']:.1f} |" for q in results["qp"]]
+    lines += ["", "## Multi-process lockstep (`dmpc run`, all processes on this machine)", "",
+              "Step time: release of step k to its completion on the plant's clock, k = 0 (Jacobi to convergence) "
+              "excluded. Bus share: step time minus the slowest agent's QP time. Memory: peak while stepping.", "",
+              "| M | steps | step median (ms) | step p99 (ms) | bus share | RSS/agent (MB) | PSS/agent (MB) | "
+              "RSS total (MB) | PSS total (MB) |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in results["runtime"]:
+        if r.get("completed"):
+            lines.append(f"| {r['M']} | {r['steps']} | {r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | "
+                         f"{r['bus_share_p50']:.0%} | {_fmt(r['rss_mb_per_agent'])} | {_fmt(r['pss_mb_per_agent'])} | "
+                         f"{r['rss_mb_total']:.0f} | {r['pss_mb_total']:.0f} |")
+        else:
+            lines.append(f"| {r['M']} | did not complete: {r.get('reason', '?')[:120]} | | | | | | | |")
+    lines += ["", "## Side by side: the same closed loop, per-step time and closed-loop cost", "",
+              "| M | DMPC multi-process (ms) | DMPC in-process (ms) | centralised OSQP (ms) | centralised CVXPY (ms) | "
+              "cost DMPC | cost centralised OSQP | cost CVXPY | multi-process / CVXPY | multi-process / OSQP |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    multi = {r["M"]: r for r in results["runtime"] if r.get("completed")}
+    for ip, co, cc in zip(results["inprocess"], results["central_osqp"], results["central_cvxpy"]):
+        M = ip["M"]
+        mp = multi.get(M)
+        mp_ms = mp["step_ms_p50"] if mp else None
+        lines.append(f"| {M} | {_fmt(mp_ms)} | {ip['step_ms_p50']:.3g} | {co['step_ms_p50']:.3g} | "
+                     f"{cc['step_ms_p50']:.3g} | {ip['closed_loop_cost']:.4g} | {co['closed_loop_cost']:.4g} | "
+                     f"{cc['closed_loop_cost']:.4g} | {_fmt(mp_ms / cc['step_ms_p50'] if mp_ms else None)} | "
+                     f"{_fmt(mp_ms / co['step_ms_p50'] if mp_ms else None)} |")
+    lines += ["", "## Offline design against M (chain family, LMI gains)", "",
+              "| M | LMI (s) | X^f (s) | rows of Omega | t* |", "|---|---|---|---|---|"]
+    lines += [f"| {d['M']} | {d['lmi_s']:.2f} | {d['terminal_set_s']:.2f} | {d['omega_rows']} | {d['t_star']} |"
+              for d in results["design"]]
+    lines += ["", "## Headline", "", "```json", json.dumps(results["headline"], indent=2), "```", ""]
+    return "\n".join(lines)
+
+
+def plot(results: dict, folder: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    done = [r for r in results["runtime"] if r.get("completed")]
+    if done:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        Ms = [r["M"] for r in done]
+        ax.loglog(Ms, [r["step_ms_p50"] for r in done], "o-", label="DMPC multi-process, median")
+        ax.loglog(Ms, [r["step_ms_p99"] for r in done], "o--", label="DMPC multi-process, p99")
+        for key, label in (("inprocess", "DMPC in-process"), ("central_osqp", "centralised OSQP"),
+                           ("central_cvxpy", "centralised CVXPY")):
+            rows = results[key]
+            ax.loglog([r["M"] for r in rows], [r["step_ms_p50"] for r in rows], "s-", label=label)
+        ax.set_xlabel("subsystems M")
+        ax.set_ylabel("time per step (ms)")
+        ax.set_title("Per-step time against M (2 cores)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(folder / "step_time.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    if results["design"]:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        d = results["design"]
+        ax.loglog([r["M"] for r in d], [r["lmi_s"] for r in d], "o-", label="LMI (Clarabel)")
+        ax.loglog([r["M"] for r in d], [r["terminal_set_s"] for r in d], "s-", label="X^f (Gilbert-Tan, HiGHS)")
+        ax.set_xlabel("subsystems M")
+        ax.set_ylabel("seconds")
+        ax.set_title("Offline design time against M")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        paths.append(folder / "design_time.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    return paths
