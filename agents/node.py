@@ -1,8 +1,9 @@
 """Agent i on a bus: receives releases and neighbours' plans, solves, publishes its plan.
 
 The same class runs in the in-process simulation (in-memory bus) and in an agent process
-(Zenoh bus). Everything that arrives is decoded and checked; anything invalid is dropped and
-counted per sender, never raised out of a handler.
+(Zenoh bus). Everything that arrives is decoded and checked (run id, sender against its key,
+shapes, finiteness, step and round within the window below); anything invalid is dropped and
+counted per sender, never raised out of a handler. A message seen twice is used once.
 """
 from __future__ import annotations
 
@@ -17,10 +18,14 @@ from dmpc.bus import keys
 from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.interface import Bus, Timer
 from dmpc.bus.messages import PLANT, PlanMessage, Ready, Release, Stop
+from dmpc.security.rejects import Rejections, out_of_range
 from dmpc.trajectories import Plan
 
 log = logging.getLogger("dmpc.agent")
 KEEP_PLANS = 8
+# A release may skip ahead of the last one (releases lost on the way, a deadline passed) by at
+# most this many steps or rounds; beyond it the message cannot come from this run's plant.
+RELEASE_WINDOW = 1000
 
 
 class AgentNode:
@@ -59,7 +64,10 @@ class AgentNode:
         self._last_done: tuple[int, int] = (-1, -1)
         self.stopped = False
         self.stop_reason = ""
-        self.rejected: dict[str, int] = {}
+        self.rejects = Rejections(log, f"agent {self.name}", bus.now, [PLANT, *self.neighbour_names])
+        self.rejected: dict[str, int] = self.rejects.counts
+        self.duplicates = 0
+        self._latest: tuple[int, int] | None = None  # newest release accepted
         self.solves = 0
         self.stale_assumptions = 0
         self.peers_alive: set[str] = set()
@@ -89,6 +97,8 @@ class AgentNode:
 
     def _on_alive(self, key: str, alive: bool) -> None:
         role = keys.last_chunk(key)
+        if role != "plant" and role not in {keys.agent_role(n) for n in self.neighbour_names}:
+            return  # only the plant and the neighbours matter (and the set stays bounded)
         if alive:
             self.peers_alive.add(role)
             if role == "plant":
@@ -117,10 +127,7 @@ class AgentNode:
 
     # ------------------------------------------------------------------ receive
     def _reject(self, sender: str, why: str) -> None:
-        count = self.rejected.get(sender, 0) + 1
-        self.rejected[sender] = count
-        if count == 1 or count % 1000 == 0:
-            log.warning("agent %s: dropped message from %s (%s); %d dropped so far", self.name, sender, why, count)
+        self.rejects(sender, why)
 
     def _decode(self, key: str, payload: bytes, expected: type):
         sender = keys.last_chunk(key) if expected is PlanMessage else PLANT
@@ -137,25 +144,46 @@ class AgentNode:
             return None
         return msg
 
+    def _checked(self, check, msg, sender: str) -> bool:
+        """Run ``check(msg)``; a problem (or a check that fails on odd input) drops the message."""
+        try:
+            problem = check(msg)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the agent
+            problem = f"malformed: {type(exc).__name__}"
+        if problem:
+            self._reject(sender, problem)
+            return False
+        return True
+
     def _on_control(self, key: str, payload: bytes) -> None:
         msg = self._decode(key, payload, Stop)
-        if msg is not None and msg.sender == PLANT:
-            self.stopped = True
-            self.stop_reason = msg.reason
-            if self._ready_timer is not None:
-                self._ready_timer.cancel()
-                self._ready_timer = None
+        if msg is None or not self._checked(self._check_stop, msg, PLANT) or self.stopped:
+            return
+        self.stopped = True
+        self.stop_reason = msg.reason
+        if self._ready_timer is not None:
+            self._ready_timer.cancel()
+            self._ready_timer = None
+        if self.rejects.total or self.duplicates:
+            log.warning("%s; %d duplicates ignored", self.rejects.summary() or f"agent {self.name}: dropped nothing",
+                        self.duplicates)
+
+    def _check_stop(self, msg: Stop) -> str | None:
+        if msg.sender != PLANT:
+            return "stop from another sender"
+        if self._latest is not None and msg.k < self._latest[0]:
+            return f"stale: stop at step {msg.k} after a release of step {self._latest[0]}"
+        return None
 
     def _on_release(self, key: str, payload: bytes) -> None:
         msg = self._decode(key, payload, Release)
-        if msg is None:
+        if msg is None or not self._checked(self._check_release, msg, PLANT):
             return
-        problem = self._check_release(msg)
-        if problem:
-            self._reject(PLANT, problem)
+        if (msg.k, msg.iteration) <= max(self._last_done, self._latest or self._last_done):
+            self.duplicates += 1  # seen already, or older than one seen: a newer release supersedes it
             return
-        if (msg.k, msg.iteration) <= self._last_done:
-            return  # duplicate or stale
+        self._latest = (msg.k, msg.iteration)
+        self._prune_plans()
         if not self._released:
             self._released = True
             self._first_k = msg.k
@@ -169,6 +197,13 @@ class AgentNode:
     def _check_release(self, msg: Release) -> str | None:
         if msg.target != self.name or msg.sender != PLANT:
             return "release for another agent"
+        if self._latest is not None:
+            k, it = self._latest
+            if msg.k > k + RELEASE_WINDOW or (msg.k == k and msg.iteration > it + RELEASE_WINDOW):
+                return f"future: step {msg.k} round {msg.iteration} is too far ahead of step {k} round {it}"
+        for name, ref in msg.assumed.items():
+            if ref is not None and tuple(ref) >= (msg.k, msg.iteration):
+                return f"assumed plan of {name} is not older than the release"
         if set(msg.states) != set(self.group):
             return "release states do not match the neighbourhood"
         for name, j in self.group.items():
@@ -187,25 +222,47 @@ class AgentNode:
 
     def _on_plan(self, key: str, payload: bytes) -> None:
         msg = self._decode(key, payload, PlanMessage)
-        if msg is None:
-            return
         name = keys.last_chunk(key)
-        j = self.neighbour_names.get(name)
-        sub = self.system.subsystems[j] if j is not None else None
-        if j is None or msg.sender != name:
-            self._reject(name, "sender does not match its key")
-            return
-        if msg.z.shape != (self.controller.N + 1, sub.n) or msg.v.shape != (self.controller.N, sub.m):
-            self._reject(name, "plan has the wrong shape")
+        if msg is None or not self._checked(lambda m: self._check_plan(name, m), msg, name):
             return
         if msg.status not in ("solved", "solved_inaccurate"):
             return  # the plant falls back for it; nothing to assume from
         store = self.plans[name]
+        if (msg.k, msg.iteration) in store:
+            self.duplicates += 1  # the first copy stays
+            return
         store[(msg.k, msg.iteration)] = Plan(msg.k, msg.iteration, msg.z, msg.v)
         while len(store) > KEEP_PLANS:
             store.popitem(last=False)
         if self.pending is not None:
             self._try_solve()
+
+    def _check_plan(self, name: str, msg: PlanMessage) -> str | None:
+        j = self.neighbour_names.get(name)
+        if j is None or msg.sender != name:
+            return "sender does not match its key"
+        sub = self.system.subsystems[j]
+        if msg.z.shape != (self.controller.N + 1, sub.n) or msg.v.shape != (self.controller.N, sub.m):
+            return "plan has the wrong shape"
+        if msg.status in ("solved", "solved_inaccurate") and out_of_range(msg.z, msg.v):
+            return "out of range: plan values beyond the magnitude limit"
+        if self._latest is not None:
+            k = self._latest[0]
+            if msg.k > k + 1:
+                return f"future: plan of step {msg.k} while the last release is of step {k}"
+            if msg.k < k - KEEP_PLANS:
+                return f"stale: plan of step {msg.k} while the last release is of step {k}"
+        return None
+
+    def _prune_plans(self) -> None:
+        """Forget plans stored before the first release that lie beyond the window.
+
+        Old plans stay: the plant may keep referring to a lost neighbour's last plan.
+        """
+        k = self._latest[0]
+        for store in self.plans.values():
+            for ref in [ref for ref in store if ref[0] > k + 1]:
+                del store[ref]
 
     # ------------------------------------------------------------------ solve
     def _lookup(self, name: str, ref: tuple[int, int] | None, exact: bool) -> tuple[bool, Plan | None]:

@@ -107,6 +107,7 @@ def session_config(
     config_file: str | Path | None = None,
     lease_ms: int | None = None,
     tls: TlsFiles | None = None,
+    acl: dict | None = None,
 ) -> zenoh.Config:
     """Build a Zenoh configuration.
 
@@ -128,7 +129,11 @@ def session_config(
         Link lease (``transport/link/tx/lease``): how long a hung peer's liveliness tokens
         survive it.
     tls : TlsFiles, optional
-        CA, certificate and key for ``tls/`` endpoints, with mutual authentication.
+        CA, certificate and key for ``tls/`` endpoints, with mutual authentication. With it,
+        every endpoint must be ``tls/`` and no other protocol is accepted or opened.
+    acl : dict, optional
+        An ``access_control`` section (see ``dmpc.security.acl``); enforced on what this
+        node's links bring in.
 
     Returns
     -------
@@ -143,6 +148,10 @@ def session_config(
         raise ValueError(f"mode {mode!r} must be one of {MODES}")
     listen = _checked(listen, connect=False)
     connect = _checked(connect, connect=True)
+    if tls is not None:
+        plain = [e for e in listen + connect if not e.startswith("tls/")]
+        if plain:
+            raise ValueError(f"endpoint {plain[0]!r} is not a tls/ endpoint: with TLS every link must use tls/")
     if lease_ms is not None and lease_ms <= 0:
         raise ValueError(f"lease_ms must be positive, got {lease_ms}")
 
@@ -155,13 +164,20 @@ def session_config(
         _insert(config, "listen/endpoints", listen)
     elif mode == "peer" and not _explicit_listen(config):
         local = not multicast and all(is_loopback(e) for e in connect)
-        _insert(config, "listen/endpoints", ["tcp/127.0.0.1:0" if local else "tcp/0.0.0.0:0"])
+        proto = "tls" if tls is not None else "tcp"
+        _insert(config, "listen/endpoints", [f"{proto}/127.0.0.1:0" if local else f"{proto}/0.0.0.0:0"])
     if not config_file:
         _compact_transport(config)
     if lease_ms is not None:
         _insert(config, "transport/link/tx/lease", int(lease_ms))
     if tls is not None:
         _insert_tls(config, tls)
+        _insert(config, "transport/link/protocols", ["tls"])
+    if acl is not None:
+        try:
+            _insert(config, "access_control", acl)
+        except zenoh.ZError as exc:
+            raise ValueError(f"access control: {_RUST_LOCATION.sub('', str(exc)).strip()}") from None
     return config
 
 

@@ -69,6 +69,9 @@ class ZenohBus(Bus):
     max_queue : int
         Messages waiting for ``run`` beyond this are dropped (counted in ``dropped``) rather
         than blocking Zenoh's threads.
+    max_payload : int
+        Larger payloads are dropped on arrival (counted in ``dropped``) and never queued: no
+        message of the protocol comes near it, and a flood of big ones must not fill memory.
 
     Attributes
     ----------
@@ -85,6 +88,7 @@ class ZenohBus(Bus):
         open_timeout: float = 10.0,
         close_session: bool = True,
         max_queue: int = 1_000_000,
+        max_payload: int = 1 << 20,
     ) -> None:
         if isinstance(source, zenoh.Config):
             self._session = open_session(source, open_timeout)
@@ -94,6 +98,7 @@ class ZenohBus(Bus):
             raise TypeError(f"expected zenoh.Config or zenoh.Session, got {type(source).__name__}")
         self._close_session = close_session
         self._max_queue = max_queue
+        self._max_payload = max_payload
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._timers: list = []
         self._seq = itertools.count()
@@ -168,6 +173,9 @@ class ZenohBus(Bus):
     def _on_sample(self, handler: Handler) -> zenoh.handlers.Callback:
         def callback(sample: zenoh.Sample) -> None:
             try:
+                if len(sample.payload) > self._max_payload:
+                    self.dropped += 1
+                    return
                 self._enqueue(handler, str(sample.key_expr), sample.payload.to_bytes())
             except BaseException:  # noqa: BLE001 - must not escape into Zenoh's thread
                 self.callback_errors += 1

@@ -15,6 +15,7 @@ from dmpc.records.run_folder import RunFolderError
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130
+STAR_ABOVE = 64  # dmpc run: beyond this many agents a full peer mesh overloads a small machine
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Distributed MPC with time-varying terminal sets: design, simulate, run over Zenoh.")
@@ -116,7 +117,13 @@ DesignOpt = Annotated[Optional[Path], typer.Option("--design", help="design.json
 StartupOpt = Annotated[float, typer.Option("--startup-timeout", min=0.1, help="Seconds to wait for the other processes before giving up.")]
 MulticastOpt = Annotated[bool, typer.Option("--multicast/--no-multicast", help="Zenoh multicast scouting (off by default: give endpoints).")]
 LeaseOpt = Annotated[Optional[float], typer.Option("--lease", min=0.1, help="Liveliness lease in seconds: a hung process is declared lost after it (Zenoh default 10).")]
+DelayOpt = Annotated[Optional[float], typer.Option("--delay", min=0, help="Delay every link by MS milliseconds (seeded fault injection).")]
+JitterOpt = Annotated[Optional[float], typer.Option("--jitter", min=0, help="Add a uniform random delay in [0, MS] ms on every link.")]
+LossOpt = Annotated[Optional[float], typer.Option("--loss", min=0, max=0.999, help="Drop each message with probability P (needs a deadline).")]
+SeedOpt = Annotated[Optional[int], typer.Option("--seed", min=0, help="Seed of the fault injection.")]
+DeadlineOpt = Annotated[Optional[float], typer.Option("--deadline", min=0.001, help="Seconds an agent has to deliver its plan; later plans are missed.")]
 ZenohConfigOpt = Annotated[Optional[Path], typer.Option("--zenoh-config", help="A Zenoh JSON5 config file applied before the options above.")]
+TlsOpt = Annotated[Optional[Path], typer.Option("--tls", help="Certificate directory from 'dmpc certs': TLS with mutual authentication on every link (tls/ endpoints), and its acl.json.")]
 
 
 def _prepare_for_process(scenario: Path, set_: list[str] | None, design_file: Path | None, steps: int | None = None):
@@ -143,6 +150,25 @@ def _prepare_for_process(scenario: Path, set_: list[str] | None, design_file: Pa
     return prepare(scn, design_data=data)
 
 
+def _fault_overrides(set_: list[str] | None, delay, jitter, loss, seed, deadline) -> list[str]:
+    """The fault flags as scenario overrides (they apply to every link)."""
+    extra = list(set_ or [])
+    for key, value in (("faults.delay_ms", delay), ("faults.jitter_ms", jitter), ("faults.loss", loss),
+                       ("seed", seed), ("options.deadline", deadline)):
+        if value is not None:
+            extra.append(f"{key}={value}")
+    return extra
+
+
+def _with_faults(bus, prepared, receiver: str):
+    """Wrap the bus in the seeded fault injector when the scenario asks for faults."""
+    if prepared.faults.is_clean:
+        return bus
+    from dmpc.bus.faults import FaultyBus
+
+    return FaultyBus(bus, receiver, prepared.faults)
+
+
 def _run_id(given: str | None, prepared) -> str:
     from dmpc.bus import keys
 
@@ -155,15 +181,28 @@ def _run_id(given: str | None, prepared) -> str:
         raise InputError(f"--run-id: {exc}") from None
 
 
+def _security(tls_dir: Path | None, role: str):
+    """(TlsFiles, access control) of ``role`` from a certificate directory, or (None, None)."""
+    if tls_dir is None:
+        return None, None
+    from dmpc.security.files import node_security
+
+    try:
+        return node_security(tls_dir, role)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
 def _open_bus(mode: str, connect, listen, multicast: bool, lease: float | None, config_file: Path | None,
-              timeout: float):
+              timeout: float, tls_dir: Path | None = None, role: str = ""):
     from dmpc.bus.session import BusError, session_config
     from dmpc.bus.zenoh_bus import ZenohBus
 
+    tls, acl = _security(tls_dir, role)
     try:
         config = session_config(mode=mode, listen=list(listen or []), connect=list(connect or []), multicast=multicast,
                                 config_file=str(config_file) if config_file else None,
-                                lease_ms=int(lease * 1000) if lease else None)
+                                lease_ms=int(lease * 1000) if lease else None, tls=tls, acl=acl)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     try:
@@ -180,7 +219,8 @@ def agent(scenario: ScenarioArg,
           mode: Annotated[str, typer.Option("--mode", help="Zenoh mode: peer or client.")] = "peer",
           run_id: RunIdOpt = None, design_file: DesignOpt = None, startup_timeout: StartupOpt = 30.0,
           multicast: MulticastOpt = False, lease: LeaseOpt = None, zenoh_config: ZenohConfigOpt = None,
-          set_: SetOpt = None) -> None:
+          tls: TlsOpt = None, delay: DelayOpt = None, jitter: JitterOpt = None, loss: LossOpt = None, seed: SeedOpt = None,
+          deadline: DeadlineOpt = None, set_: SetOpt = None) -> None:
     """Run one subsystem's agent on the Zenoh bus until the plant stops the run."""
     from dmpc.agents.process import run_agent
     from dmpc.runtime.memory import settle_after_startup
@@ -189,11 +229,13 @@ def agent(scenario: ScenarioArg,
     if mode not in ("peer", "client"):
         raise InputError(f"--mode: expected peer or client, got {mode!r}")
     sigterm_as_interrupt()
+    set_ = _fault_overrides(set_, delay, jitter, loss, seed, deadline)
     prepared = _prepare_for_process(scenario, set_, design_file)
     if id_ not in prepared.names:
         raise InputError(f"--id: no subsystem {id_!r} in the scenario (subsystems: {', '.join(prepared.names)})")
     rid = _run_id(run_id, prepared)
-    bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout)
+    bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout, tls, f"agent-{id_}")
+    bus = _with_faults(bus, prepared, id_)
     settle_after_startup()
     try:
         outcome = run_agent(prepared, id_, bus, rid, startup_timeout)
@@ -212,12 +254,13 @@ def agent(scenario: ScenarioArg,
 def plant(scenario: ScenarioArg,
           out: Annotated[Path, typer.Option("--out", help="Run folder to write (created).")],
           connect: ConnectOpt = None, listen: ListenOpt = None,
-          mode: Annotated[str, typer.Option("--mode", help="Zenoh mode: peer or client.")] = "peer",
+          mode: Annotated[str, typer.Option("--mode", help="Zenoh mode: peer, client, or router (agents then connect as clients).")] = "peer",
           run_id: RunIdOpt = None, design_file: DesignOpt = None, startup_timeout: StartupOpt = 30.0,
           steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps to run (default: the scenario's).")] = None,
           multicast: MulticastOpt = False, lease: LeaseOpt = None, zenoh_config: ZenohConfigOpt = None,
           quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar and no summary table.")] = False,
-          set_: SetOpt = None) -> None:
+          tls: TlsOpt = None, delay: DelayOpt = None, jitter: JitterOpt = None, loss: LossOpt = None, seed: SeedOpt = None,
+          deadline: DeadlineOpt = None, set_: SetOpt = None) -> None:
     """Run the plant and step barrier: wait for every agent, step, record."""
     from dmpc.plant.process import run_plant
     from dmpc.runtime.memory import settle_after_startup
@@ -225,12 +268,14 @@ def plant(scenario: ScenarioArg,
     from dmpc.records.session import RunRecorder
     from dmpc.runtime.signals import sigterm_as_interrupt
 
-    if mode not in ("peer", "client"):
-        raise InputError(f"--mode: expected peer or client, got {mode!r}")
+    if mode not in ("peer", "client", "router"):
+        raise InputError(f"--mode: expected peer, client or router, got {mode!r}")
     sigterm_as_interrupt()
+    set_ = _fault_overrides(set_, delay, jitter, loss, seed, deadline)
     prepared = _prepare_for_process(scenario, set_, design_file, steps)
     rid = _run_id(run_id, prepared)
-    bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout)
+    bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout, tls, "plant")
+    bus = _with_faults(bus, prepared, "plant")
     settle_after_startup()
     try:
         with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
@@ -246,7 +291,7 @@ def plant(scenario: ScenarioArg,
 
 @app.command()
 def router(listen: ListenOpt = None,
-           multicast: MulticastOpt = False) -> None:
+           multicast: MulticastOpt = False, tls: TlsOpt = None) -> None:
     """Host a Zenoh router in this process (no external binary) until Ctrl-C."""
     import time
 
@@ -254,9 +299,10 @@ def router(listen: ListenOpt = None,
     from dmpc.runtime.signals import sigterm_as_interrupt
 
     sigterm_as_interrupt()
-    endpoints = list(listen or ["tcp/0.0.0.0:7447"])
+    endpoints = list(listen or ["tls/0.0.0.0:7447" if tls else "tcp/0.0.0.0:7447"])
+    tls_files, acl = _security(tls, "router")
     try:
-        config = session_config(mode="router", listen=endpoints, multicast=multicast)
+        config = session_config(mode="router", listen=endpoints, multicast=multicast, tls=tls_files, acl=acl)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     import zenoh
@@ -277,12 +323,41 @@ def router(listen: ListenOpt = None,
 
 
 @app.command()
+def certs(directory: Annotated[Path, typer.Argument(help="Directory to write (created).", show_default=False)],
+          scenario: Annotated[Path, typer.Option("--scenario", help="Scenario YAML: one certificate per agent, and its access control.")],
+          host: Annotated[Optional[list[str]], typer.Option("--host", help="Another IP address or DNS name the processes are reached at (repeatable; 127.0.0.1 and localhost are always in).")] = None,
+          run_id: Annotated[Optional[str], typer.Option("--run-id", help="Bind the access control to this run id (default: any run of the scenario).")] = None,
+          days: Annotated[int, typer.Option("--days", min=1, help="Validity of the certificates in days.")] = 365,
+          force: Annotated[bool, typer.Option("--force", help="Replace certificates already in DIRECTORY.")] = False,
+          set_: SetOpt = None) -> None:
+    """Make a CA, a certificate and key per role (router, plant, agent-<name>) and acl.json."""
+    from dmpc.bus import keys
+    from dmpc.scenario import build_system
+    from dmpc.security.certs import DEFAULT_HOSTS, make_run_security
+
+    system = build_system(_load(scenario, set_))
+    try:
+        if run_id is not None:
+            keys.check_chunk(run_id, "--run-id")
+        roles = make_run_security(directory, system, hosts=list(DEFAULT_HOSTS) + list(host or []),
+                                  run_id=run_id or "*", days=days, force=force)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    print(f"{directory}: CA, {len(roles)} certificates ({', '.join(roles)}) and acl.json")
+    print(f"keep {directory / 'ca.key'} away from the nodes; give each node ca.pem, acl.json and its own role's files")
+
+
+@app.command()
 def run(scenario: ScenarioArg,
         out: Annotated[Optional[Path], typer.Option("--out", help="Run folder to write (default: runs/<scenario>-<time>).")] = None,
         steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps to run (default: the scenario's).")] = None,
         run_id: RunIdOpt = None, startup_timeout: StartupOpt = 60.0,
         quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
-        set_: SetOpt = None) -> None:
+        tls: TlsOpt = None,
+        secure: Annotated[bool, typer.Option("--secure", help="Make certificates and access control in the run folder (tls/) and run every link over TLS with them.")] = False,
+        topology: Annotated[Optional[str], typer.Option("--topology", help="mesh (agents link to each other) or star (through the plant's router); default: mesh up to 64 agents, star above.")] = None,
+        delay: DelayOpt = None, jitter: JitterOpt = None, loss: LossOpt = None, seed: SeedOpt = None,
+        deadline: DeadlineOpt = None, set_: SetOpt = None) -> None:
     """Start the plant and every agent as processes on this machine and wait for the run."""
     import secrets
 
@@ -290,10 +365,18 @@ def run(scenario: ScenarioArg,
     from dmpc.runtime.launcher import launch
     from dmpc.runtime.setup import prepare
 
-    prepared = prepare(_load(scenario, set_, steps))
+    if tls is not None and secure:
+        raise InputError("--tls and --secure exclude each other (--secure makes its own certificates)")
+    prepared = prepare(_load(scenario, _fault_overrides(set_, delay, jitter, loss, seed, deadline), steps))
+    for role in ["plant"] + [f"agent-{name}" for name in prepared.names] if tls is not None else []:
+        _security(tls, role)  # every file present before any process starts
+    if topology not in (None, "mesh", "star"):
+        raise InputError(f"--topology: expected mesh or star, got {topology!r}")
+    topology = topology or ("mesh" if prepared.system.M <= STAR_ABOVE else "star")
     out = _default_out(out, prepared.name)
     rid = _run_id(run_id or f"{prepared.name}-{secrets.token_hex(4)}", prepared)
-    result = launch(prepared, out, rid, startup_timeout=startup_timeout, show_progress=not quiet)
+    result = launch(prepared, out, rid, startup_timeout=startup_timeout, show_progress=not quiet,
+                    tls_dir=tls, secure=secure, topology=topology)
     if result.summary is not None:
         print_summary(result.summary, out)
     if result.code == EXIT_INTERRUPTED:
@@ -301,6 +384,30 @@ def run(scenario: ScenarioArg,
     elif result.code != 0:
         print(f"error: {result.message}", file=sys.stderr)  # keeps the children's log tails on their lines
     raise typer.Exit(result.code)
+
+
+@app.command()
+def bench(quick: Annotated[bool, typer.Option("--quick", help="A subset that runs in under a minute.")] = False,
+          as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON.")] = False,
+          write: Annotated[Optional[Path], typer.Option("--write", help="Write the Markdown report here (with figures beside it).")] = None) -> None:
+    """Measure QP, multi-process step time, memory, design time and baselines on this machine."""
+    from dmpc.bench_report import markdown, plot, run_all
+
+    root = Path.cwd()
+    if not (root / "scenarios" / "paper.yaml").exists():
+        raise InputError("run dmpc bench from the project folder (it needs scenarios/)")
+    results = run_all(quick, root, show_progress=not as_json)
+    if write is not None:
+        write.parent.mkdir(parents=True, exist_ok=True)
+        figures = plot(results, write.parent / "figures")
+        command = "dmpc bench" + (" --quick" if quick else "") + f" --write {write}"
+        text = markdown(results, command)
+        text += "\n" + "\n".join(f"![{p.stem}](figures/{p.name})" for p in figures) + "\n"
+        write.write_text(text)
+    if as_json:
+        print(json.dumps({**results["headline"], "results": results}, indent=2))
+    else:
+        stdout_console().print(markdown(results, "dmpc bench"))
 
 
 def _is_scenario_error(exc: Exception) -> bool:

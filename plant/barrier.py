@@ -16,12 +16,14 @@ import numpy as np
 
 from dmpc.bus.messages import PlanMessage, Release
 from dmpc.design import Design
-from dmpc.mpc_qp import plan_cost
+from dmpc.mpc_qp import QPStatus, plan_cost
 from dmpc.plant.dynamics import Plant
+from dmpc.security.rejects import out_of_range
 from dmpc.system import CoupledSystem, project_onto
 from dmpc.trajectories import Plan, continued, shifted_input
 
 SOLVED_STATUSES = ("solved", "solved_inaccurate")
+KNOWN_STATUSES = frozenset(s.value for s in QPStatus)
 
 
 @dataclass(frozen=True)
@@ -192,9 +194,19 @@ class Coordinator:
         sub = self.system.subsystems[i]
         if msg.z.shape != (self.N + 1, sub.n) or msg.v.shape != (self.N, sub.m):
             return "wrong shape"
-        if msg.status in SOLVED_STATUSES and not (np.all(np.isfinite(msg.z)) and np.all(np.isfinite(msg.v))):
-            return "non-finite plan"
+        if msg.status not in KNOWN_STATUSES:
+            return "unknown status"
+        if msg.status in SOLVED_STATUSES:
+            if not (np.all(np.isfinite(msg.z)) and np.all(np.isfinite(msg.v)) and np.isfinite(msg.cost)):
+                return "non-finite plan"
+            if out_of_range(msg.z, msg.v, msg.cost):
+                return "out of range"
         return None
+
+    def has_plan(self, name: str) -> bool:
+        """True if agent ``name``'s plan for the open round is in (or the agent was marked missed)."""
+        i = self.index.get(name)
+        return i is not None and (i in self._round or i in self._missed)
 
     # ------------------------------------------------------------------ rounds
     def _release_round(self) -> list:

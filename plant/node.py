@@ -3,6 +3,9 @@
 Hosts the pure Coordinator on a bus. In ``realtime`` mode step k is released at
 ``t0 + k dt`` on the bus clock and each round has a deadline; in ``lockstep`` the next step
 follows as soon as the last plan is in.
+
+Whatever arrives is decoded and checked before it reaches the coordinator; invalid messages
+are dropped and counted per sender (``rejected``, in the run's summary), never raised.
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.interface import Bus
 from dmpc.bus.messages import PlanMessage, Ready, Stop
 from dmpc.plant.barrier import Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, StepRecord
+from dmpc.security.rejects import Rejections
 
 log = logging.getLogger("dmpc.plant")
 
@@ -53,7 +57,8 @@ class PlantNode:
         self.started = False
         self.finished = False
         self.failure = ""
-        self.rejected: dict[str, int] = {}
+        self.rejects = Rejections(log, "plant", bus.now, self.names)
+        self.rejected: dict[str, int] = self.rejects.counts
         self._t0 = 0.0
         self._round_opened_at = 0.0
         self._step_opened_at = 0.0
@@ -68,10 +73,7 @@ class PlantNode:
 
     # ------------------------------------------------------------------ receive
     def _reject(self, sender: str, why: str) -> None:
-        count = self.rejected.get(sender, 0) + 1
-        self.rejected[sender] = count
-        if count == 1 or count % 1000 == 0:
-            log.warning("plant: dropped message from %s (%s); %d dropped so far", sender, why, count)
+        self.rejects(sender, why)
 
     def _on_ready(self, key: str, payload: bytes) -> None:
         name = keys.last_chunk(key)
@@ -84,8 +86,10 @@ class PlantNode:
             self._reject(name, "invalid ready message")
             return
         if msg.design_digest != self.design_digest:
-            self.fail(f"agent {name} uses a different design (digest {msg.design_digest} != {self.design_digest}); "
-                      "give every process the same scenario")
+            # dropped rather than fatal: anyone on the bus could send it; the run waits for a
+            # matching Ready and times out naming the agent if none comes
+            self._reject(name, f"design: agent {name} uses design {msg.design_digest:.16}, this plant "
+                               f"{self.design_digest}; give every process the same scenario")
             return
         self.ready.add(name)
         if self.started:
@@ -119,10 +123,16 @@ class PlantNode:
         if not isinstance(msg, PlanMessage) or msg.sender != name:
             self._reject(name, "not a plan from its key's agent")
             return
-        problem = self.coordinator.check(msg)
+        try:
+            problem = self.coordinator.check(msg)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the plant
+            problem = f"malformed: {type(exc).__name__}"
         if problem is not None:
             if problem not in ("stale",):  # late plans after a deadline are normal in realtime
                 self._reject(name, problem)
+            return
+        if self.coordinator.has_plan(name):
+            self.coordinator.duplicates += 1  # the first copy counts; its timing too
             return
         now = self.bus.now()
         actions = self.coordinator.on_plan(msg)

@@ -86,20 +86,31 @@ def prepare_run_folder(out: Path, prepared: Prepared) -> tuple[Path, Path]:
 
 
 def child_commands(prepared: Prepared, out: Path, scenario_path: Path, design_path: Path, run_id: str, port: int,
-                   startup_timeout: float, extra: list[str] | None = None) -> list[Child]:
-    """The plant and agent command lines (``python -m dmpc.cli ...``)."""
+                   startup_timeout: float, extra: list[str] | None = None, tls_dir: Path | None = None,
+                   topology: str = "mesh") -> list[Child]:
+    """The plant and agent command lines (``python -m dmpc.cli ...``); ``tls_dir``: every link
+    over TLS with the certificates (and access control) of that directory.
+
+    ``mesh``: every process a peer, agents linked directly to each other (lowest latency for
+    small M). ``star``: the plant's session is a router and agents are its clients, so there are
+    M links instead of M^2/2 and agent-to-agent plans are forwarded by the plant's router.
+    """
     base = [sys.executable, "-m", "dmpc.cli"]
-    endpoint = f"tcp/127.0.0.1:{port}"
+    proto = "tcp" if tls_dir is None else "tls"
+    endpoint = f"{proto}/127.0.0.1:{port}"
     common = ["--design", str(design_path), "--run-id", run_id, "--startup-timeout", str(startup_timeout),
-              "--no-multicast"] + (extra or [])
+              "--no-multicast"] + (extra or []) + ([] if tls_dir is None else ["--tls", str(tls_dir)])
     logs = out / "logs"
     logs.mkdir(exist_ok=True)
+    star = topology == "star"
     children = [Child("plant", base + ["plant", str(scenario_path), "--out", str(out), "--listen", endpoint,
-                                       "--quiet"] + common, logs / "plant.log")]
+                                       "--quiet"] + (["--mode", "router"] if star else []) + common,
+                      logs / "plant.log")]
+    agent_net = ["--mode", "client"] if star else ["--listen", f"{proto}/127.0.0.1:0"]
     agent_common = [arg for arg in common if arg not in ("--design", str(design_path))]
     for name in prepared.names:
-        children.append(Child(f"agent-{name}", base + ["agent", str(out / BUNDLE), "--id", name, "--connect", endpoint,
-                                                       "--listen", "tcp/127.0.0.1:0"] + agent_common,
+        children.append(Child(f"agent-{name}", base + ["agent", str(out / BUNDLE), "--id", name, "--connect", endpoint]
+                              + agent_net + agent_common,
                               logs / f"agent-{name}.log"))
     return children
 
@@ -164,11 +175,21 @@ def tail(path: Path, lines: int = 5) -> str:
 
 
 def launch(prepared: Prepared, out: Path, run_id: str, startup_timeout: float = 30.0, show_progress: bool = True,
-           extra_args: list[str] | None = None) -> LaunchResult:
-    """Run the plant and M agents as processes; returns when all have exited."""
+           extra_args: list[str] | None = None, tls_dir: Path | None = None, secure: bool = False,
+           topology: str = "mesh") -> LaunchResult:
+    """Run the plant and M agents as processes; returns when all have exited.
+
+    ``tls_dir`` runs every link over TLS with that certificate directory; ``secure`` first
+    makes one in ``out/tls`` (certificates and access control bound to ``run_id``).
+    """
     scenario_path, design_path = prepare_run_folder(out, prepared)
+    if secure:
+        from dmpc.security.certs import make_run_security
+
+        tls_dir = out / "tls"
+        make_run_security(tls_dir, prepared.system, run_id=run_id)
     children = child_commands(prepared, out, scenario_path, design_path, run_id, free_port(), startup_timeout,
-                              extra_args)
+                              extra_args, tls_dir, topology)
     progress = None
     try:
         start(children)

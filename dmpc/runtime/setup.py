@@ -99,6 +99,13 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
     deadline = opts.deadline
     if deadline is None and opts.mode == "realtime":
         deadline = opts.dt
+    lossy = scenario.faults.loss > 0 or any(link.loss > 0 for link in scenario.faults.links)
+    if lossy and deadline is None:
+        from dmpc.scenario import ScenarioError
+
+        raise ScenarioError("faults.loss: lost messages need a deadline in lockstep mode, or the run would wait "
+                            "for them forever: set options.deadline (--deadline S) or options.mode: realtime",
+                            field="faults.loss")
     return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design),
                     protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario),
                     name=scenario.name, coupling=opts.coupling)

@@ -1,0 +1,120 @@
+"""Zenoh access control generated from a scenario: each role may touch only its own keys.
+
+The rules follow the protocol of ``bus.keys`` (``R`` is the run id, ``*`` for any run):
+
+=============  =====================================  ==========================================
+role           may publish (put, liveliness token)    may subscribe to
+=============  =====================================  ==========================================
+agent-I        plan/I, ready/I; token alive/agent-I   release/I, plan/J for J in N_I, control,
+                                                      alive/*
+plant          release/*, control; token alive/plant  plan/*, ready/*, alive/*
+router         relays: everything under dmpc/R/**     everything under dmpc/R/**
+=============  =====================================  ==========================================
+
+Subjects are bound to certificate common names (the roles of ``dmpc.security.certs``), the
+default is deny, and the rules hold on ingress: a node filters what its links bring in, which
+is the direction an honest node controls. Egress rules let each node hand a role only what
+that role may subscribe to, and the declarations it needs to see. Denied messages vanish
+silently (Zenoh reports nothing to the sender).
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from dmpc.bus import keys
+
+ACL_FILE = "acl.json"
+# everything the protocol sends; queries and queryables are not used and stay denied
+_DECLARES = ["declare_subscriber", "liveliness_token", "declare_liveliness_subscriber"]
+_ALL = ["put", "delete", "liveliness_query", *_DECLARES]
+
+
+def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": key_exprs}
+
+
+def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]], run_id: str = "*") -> dict:
+    """The ``access_control`` section of a Zenoh configuration.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Subsystem (agent) names.
+    neighbours : mapping name -> names
+        N_I without I: whose plans agent I subscribes to.
+    run_id : str
+        The run's key prefix chunk; ``*`` accepts any run of this scenario.
+
+    Returns
+    -------
+    dict
+        JSON-ready: ``enabled``, ``default_permission`` (deny), ``rules``, ``subjects``,
+        ``policies``.
+    """
+    if run_id != "*":
+        keys.check_chunk(run_id, "run id")
+    R = run_id
+    root = f"{keys.ROOT}/{R}/**"
+    alive_all = keys.alive_prefix(R)
+    rules, subjects, policies = [], [], []
+
+    def role(name: str, puts: list[str], subs: list[str], token: str, receives: list[str]) -> None:
+        rid = name
+        rules.extend([
+            _rule(f"{rid} put", "ingress", ["put"], puts),
+            _rule(f"{rid} subscribe", "ingress", ["declare_subscriber"], subs),
+            _rule(f"{rid} token", "ingress", ["liveliness_token"], [token]),
+            _rule(f"{rid} watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], [alive_all]),
+            _rule(f"{rid} receive", "egress", ["put"], receives),
+        ])
+        subjects.append({"id": rid, "cert_common_names": [name]})
+        policies.append({"id": rid, "rules": [f"{rid} put", f"{rid} subscribe", f"{rid} token", f"{rid} watch",
+                                              f"{rid} receive", "declarations"], "subjects": [rid]})
+
+    rules.append(_rule("declarations", "egress", _DECLARES + ["liveliness_query"], [root]))
+    role("plant", [keys.release(R, "*"), keys.control(R)], [keys.plan(R, "*"), keys.ready(R, "*")],
+         keys.alive(R, "plant"), [keys.plan(R, "*"), keys.ready(R, "*")])
+    for name in names:
+        own = keys.agent_role(name)
+        subs = [keys.release(R, name), keys.control(R)] + [keys.plan(R, j) for j in neighbours[name]]
+        role(own, [keys.plan(R, name), keys.ready(R, name)], subs, keys.alive(R, own), subs)
+    rules.extend([_rule("relay in", "ingress", _ALL, [root]), _rule("relay out", "egress", _ALL, [root])])
+    subjects.append({"id": "router", "cert_common_names": ["router"]})
+    policies.append({"id": "router", "rules": ["relay in", "relay out"], "subjects": ["router"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def scenario_access_control(system, run_id: str = "*") -> dict:
+    """:func:`access_control` for a ``CoupledSystem``'s subsystems and graph."""
+    names = [s.name for s in system.subsystems]
+    neighbours = {names[i]: [names[j] for j in system.neighbours[i] if j != i] for i in range(system.M)}
+    return access_control(names, neighbours, run_id)
+
+
+def write_acl(directory: str | Path, acl: dict) -> Path:
+    path = Path(directory) / ACL_FILE
+    path.write_text(json.dumps(acl, indent=1))
+    return path
+
+
+def read_acl(directory: str | Path) -> dict | None:
+    """The ``acl.json`` of a certificate directory, or None if there is none.
+
+    Raises
+    ------
+    ValueError
+        The file is not a JSON object with the keys of an access control section.
+    """
+    path = Path(directory) / ACL_FILE
+    if not path.is_file():
+        return None
+    try:
+        acl = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(acl, dict) or not {"rules", "subjects", "policies"} <= set(acl):
+        raise ValueError(f"{path}: not an access control section (needs rules, subjects, policies)")
+    return acl

@@ -1,0 +1,99 @@
+"""Counting and logging dropped messages without letting a flood flood the log.
+
+Every node drops what fails validation and counts it per sender. A sender that is not part
+of the run (any key chunk a rogue process makes up) is counted under one name, ``UNKNOWN``,
+so the counts stay bounded whatever arrives. Each sender gets at most one log line per
+``interval`` seconds of the bus clock; the line reports the drops suppressed since the last.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+
+UNKNOWN = "(unknown)"
+LOG_INTERVAL = 1.0
+
+
+class Rejections:
+    """Per-sender drop counts with a time-throttled warning.
+
+    Parameters
+    ----------
+    log : logging.Logger
+    who : str
+        Prefix of every line, e.g. ``plant`` or ``agent 2``.
+    clock : callable () -> float
+        Seconds; the bus clock (simulated for the in-memory bus).
+    known : iterable of str
+        Senders counted under their own name; everything else is ``UNKNOWN``.
+    interval : float
+        Least time between two lines about the same sender.
+
+    Attributes
+    ----------
+    counts : dict str -> int
+        Drops per sender (the records' ``rejected``).
+    reasons : dict str -> int
+        Drops per reason (the text up to the first colon).
+    """
+
+    def __init__(self, log: logging.Logger, who: str, clock: Callable[[], float], known: Iterable[str],
+                 interval: float = LOG_INTERVAL) -> None:
+        self.log = log
+        self.who = who
+        self.clock = clock
+        self.known = frozenset(known)
+        self.interval = interval
+        self.counts: dict[str, int] = {}
+        self.reasons: dict[str, int] = {}
+        self.lines = 0
+        self._last_line: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def sender(self, name: str) -> str:
+        """``name`` if it belongs to the run, else ``UNKNOWN``."""
+        return name if name in self.known else UNKNOWN
+
+    def __call__(self, sender: str, why: str) -> None:
+        """Count one dropped message from ``sender`` and maybe log it."""
+        sender = self.sender(sender)
+        self.counts[sender] = self.counts.get(sender, 0) + 1
+        reason = why.split(":", 1)[0][:60]
+        if reason not in self.reasons and len(self.reasons) >= 64:
+            reason = "other"
+        self.reasons[reason] = self.reasons.get(reason, 0) + 1
+        now = self.clock()
+        last = self._last_line.get(sender)
+        if last is not None and now - last < self.interval:
+            self._suppressed[sender] = self._suppressed.get(sender, 0) + 1
+            return
+        self._last_line[sender] = now
+        skipped = self._suppressed.pop(sender, 0)
+        more = f", {skipped} more since the last report" if skipped else ""
+        self.lines += 1
+        text = "".join(c if c.isprintable() else "?" for c in why[:200])  # the text may come from the sender
+        self.log.warning("%s: dropped a message from %s (%s)%s; %d dropped from %s so far",
+                         self.who, sender, text, more, self.counts[sender], sender)
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def summary(self) -> str:
+        """One line: the total and the counts per sender, or '' if nothing was dropped."""
+        if not self.counts:
+            return ""
+        per = ", ".join(f"{s}: {n}" for s, n in sorted(self.counts.items()))
+        return f"{self.who}: dropped {self.total} invalid messages ({per})"
+
+
+# No state, input or cost of a plan the QP could produce comes near this; beyond it a plan
+# would overflow the arithmetic downstream (terminal box, plant update) into inf and NaN.
+MAX_MAGNITUDE = 1e12
+
+
+def out_of_range(*arrays) -> bool:
+    """True if any entry of the arrays (or scalars) exceeds ``MAX_MAGNITUDE`` in size."""
+    import numpy as np
+
+    return any(np.size(a) and float(np.max(np.abs(a))) > MAX_MAGNITUDE for a in arrays)
