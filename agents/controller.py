@@ -8,6 +8,7 @@ import numpy as np
 
 from dmpc.agents.local_qp import LocalQP, QPSolution
 from dmpc.design import Design
+from dmpc.methods import terminal_policy
 from dmpc.system import CoupledSystem
 from dmpc.trajectories import Plan, assumed_trajectory, coupling_feedforward
 
@@ -24,10 +25,12 @@ class AgentController:
     coupling : {"feedforward", "nominal"}
         ``nominal`` drops the neighbours' terms from the prediction (the paper's model (5)).
     solver_settings : dict, optional
+    method : str
+        A distributed method of :mod:`dmpc.methods`: it sets the terminal rows of QP_i.
     """
 
     def __init__(self, system: CoupledSystem, design: Design, index: int, coupling: str = "feedforward",
-                 solver_settings: dict | None = None) -> None:
+                 solver_settings: dict | None = None, method: str = "tv-box") -> None:
         self.index = index
         self.system = system
         sub = system.subsystems[index]
@@ -40,7 +43,10 @@ class AgentController:
         self._K = {j: K[j] for j in self.neighbours}
         self._A = [system.coupling(index, j)[0] for j in self.neighbours]
         self._B = [system.coupling(index, j)[1] for j in self.neighbours]
-        self.qp = LocalQP(sub, design.gains.P[index], design.horizon, design.tightening[index], solver_settings)
+        self.method = method
+        terminal = terminal_policy(method, system, design).agent_terminal(index)
+        self.qp = LocalQP(sub, design.gains.P[index], design.horizon, design.tightening[index], solver_settings,
+                          terminal=terminal)
 
     def feedforward(self, k: int, states: dict[int, np.ndarray], plans: dict[int, Plan | None]) -> np.ndarray:
         """c_i(t) for t = 0..N-1 from the neighbours' assumed trajectories, shape (N, n_i)."""
@@ -61,6 +67,7 @@ class AgentController:
             Measured states of i and its neighbours.
         alpha : ndarray, shape (n_i,)
         beta : float
+            The released terminal centre and size (box radius, or ellipsoid level).
         plans : dict j -> Plan or None
             The neighbours' plans to build the assumed trajectories from (None: K-rollout).
         """

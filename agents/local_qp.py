@@ -3,9 +3,10 @@
     min  sum_{t<N} z(t)'Q_i z(t) + v(t)'R_i v(t) + z(N)'P_i z(N)
     s.t. z(0) = x_i(k),  z(t+1) = A_ii z(t) + B_ii v(t) + c_i(t)
          U_i tightened by m_u(t),  X_i tightened by m_x(t)  (t = 1..N)
-         |z(N) - alpha_i| <= beta - m_f  elementwise
+         |z(N) - alpha_i| <= beta - m_f  elementwise   (or the method's terminal rows, see below)
 
-The measured state, the coupling feed-forward and the terminal box are all bounds of the QP,
+The terminal constraint is an :class:`~dmpc.methods.terminal_rows.AgentTerminal`: the box above by
+default, a polytope inside an ellipsoid for the ellipsoid methods. The measured state, the coupling feed-forward and the terminal box are all bounds of the QP,
 so per step only OSQP's ``l``/``u`` change and it warm-starts from its last solution.
 """
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from dmpc.design.tubes import Tightening
+from dmpc.methods.terminal_rows import AgentTerminal, BoxTerminal
 from dmpc.mpc_qp import DEFAULT_SETTINGS, MpcQP, QPSolution, QPStatus, StageRows
 from dmpc.system import Subsystem
 
@@ -31,10 +33,12 @@ class LocalQP:
     tightening : Tightening
     settings : dict, optional
         OSQP settings overriding DEFAULT_SETTINGS.
+    terminal : AgentTerminal, optional
+        The terminal rows; the box |z(N) - alpha| <= beta - m_f by default.
     """
 
     def __init__(self, sub: Subsystem, P_terminal: np.ndarray, horizon: int, tightening: Tightening,
-                 settings: dict | None = None) -> None:
+                 settings: dict | None = None, terminal: AgentTerminal | None = None) -> None:
         self.n, self.m, self.N = sub.n, sub.m, horizon
         U = sub.input_set
         inputs = StageRows(U.H, U.lower + tightening.input_margin, U.upper - tightening.input_margin)
@@ -42,8 +46,8 @@ class LocalQP:
         if sub.state_set is not None:
             X = sub.state_set
             states = StageRows(X.H, X.lower + tightening.state_margin[1:], X.upper - tightening.state_margin[1:])
-        self._terminal_margin = tightening.terminal_margin
-        self._qp = MpcQP(sub.A, sub.B, sub.Q, sub.R, P_terminal, horizon, inputs, states, np.eye(sub.n), settings)
+        self.terminal = terminal if terminal is not None else BoxTerminal(sub.n, tightening.terminal_margin)
+        self._qp = MpcQP(sub.A, sub.B, sub.Q, sub.R, P_terminal, horizon, inputs, states, self.terminal.T, settings)
 
     def solve(self, x: np.ndarray, coupling: np.ndarray, alpha: np.ndarray, beta: float) -> QPSolution:
         """Solve QP_i for one step.
@@ -55,12 +59,12 @@ class LocalQP:
         coupling : ndarray, shape (N, n)
             Feed-forward c_i(t), t = 0..N-1 (zeros for the decoupled nominal model).
         alpha : ndarray, shape (n,)
-            Centre of the terminal box.
+            Centre of the terminal box (the released centre).
         beta : float
-            Radius of the terminal box.
+            Radius of the terminal box (the released size: the level r_i for an ellipsoid).
         """
-        radius = beta - self._terminal_margin
-        return self._qp.solve(x, coupling, alpha - radius, alpha + radius)
+        lower, upper = self.terminal.bounds(alpha, beta)
+        return self._qp.solve(x, coupling, lower, upper)
 
     def cost(self, z: np.ndarray, v: np.ndarray) -> float:
         """Own cost J_i of a plan: z shape (N+1, n), v shape (N, m)."""

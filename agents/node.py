@@ -73,6 +73,7 @@ class AgentNode:
         self.peers_alive: set[str] = set()
         self.plant_seen = False
         self.plant_lost = False
+        self.rejoins = 0
         self.ready_sent = 0
         self._released = False
         self._first_k: int | None = None
@@ -103,11 +104,26 @@ class AgentNode:
             self.peers_alive.add(role)
             if role == "plant":
                 self.plant_seen = True
+                if self.plant_lost and not self.stopped:
+                    self._rejoin()
             self._maybe_ready()
         else:
             self.peers_alive.discard(role)
             if role == "plant" and self.plant_seen and not self.stopped:
                 self.plant_lost = True
+
+    def _rejoin(self) -> None:
+        """The plant is back after a loss (this process hung past the lease, or the link broke).
+
+        The plant has declared this agent lost and releases nothing to it until it is ready
+        again, so start over as at start-up: send ``Ready`` (repeated until a release comes) and
+        treat the next release as the first (plans published meanwhile can never arrive).
+        """
+        log.warning("agent %s: the plant is back; rejoining", self.name)
+        self.plant_lost = False
+        self._released = False
+        self._latest = None
+        self.rejoins += 1
 
     def _maybe_ready(self) -> None:
         if self._released or self._ready_timer is not None:
@@ -326,3 +342,15 @@ class AgentNode:
     @property
     def rejected_total(self) -> int:
         return int(np.sum(list(self.rejected.values()))) if self.rejected else 0
+
+    def report(self) -> dict:
+        """What this agent dropped and ignored, for the records (``summary.json`` ``agents``).
+
+        Returns
+        -------
+        dict
+            ``rejected`` (drops per sender), ``rejected_reasons`` (drops per reason),
+            ``duplicates`` (copies ignored), ``solves``.
+        """
+        return {"rejected": dict(self.rejects.counts), "rejected_reasons": dict(self.rejects.reasons),
+                "duplicates": int(self.duplicates), "solves": int(self.solves)}

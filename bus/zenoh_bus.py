@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 
 ENCODING = "application/msgpack"
 POLL = 0.1  # longest wait in run(): bounds the delay before Ctrl-C is seen
+# Closing a session can wait for a link to a peer that is hung (stopped, but its kernel still
+# accepts TCP connections); after this long the session is left to the process's exit.
+CLOSE_TIMEOUT = 1.0
 
 _open_buses: weakref.WeakSet[ZenohBus] = weakref.WeakSet()
 
@@ -302,11 +305,19 @@ class ZenohBus(Bus):
             except Exception as exc:  # noqa: BLE001 - best effort on the way out
                 log.debug("undeclare failed: %s", exc)
         if self._close_session:
-            try:
-                self._session.close()
-            except Exception as exc:  # noqa: BLE001
-                log.warning("closing the Zenoh session failed: %s", exc)
+            closer = threading.Thread(target=_close_session, args=(self._session,), name="zenoh-close", daemon=True)
+            closer.start()
+            closer.join(CLOSE_TIMEOUT)
+            if closer.is_alive():
+                log.info("the Zenoh session did not close within %g s (a peer is not answering); leaving it", CLOSE_TIMEOUT)
         _open_buses.discard(self)
+
+
+def _close_session(session: zenoh.Session) -> None:
+    try:
+        session.close()
+    except Exception as exc:  # noqa: BLE001 - best effort on the way out
+        log.warning("closing the Zenoh session failed: %s", exc)
 
 
 def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback:

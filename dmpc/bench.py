@@ -19,6 +19,7 @@ import numpy as np
 import psutil
 
 from dmpc.records.run_folder import stage_cost
+from dmpc.runtime.launcher import default_topology
 
 
 def machine() -> dict:
@@ -106,7 +107,8 @@ def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), 
             if time.monotonic() - t0 > timeout:
                 proc.send_signal(2)
                 proc.wait(30)
-                return {"M": M, "completed": False, "reason": f"timeout after {timeout:.0f} s"}
+                return {"M": M, "completed": False, "topology": default_topology(M),
+                        "reason": f"timeout after {timeout:.0f} s"}
             time.sleep(0.5)
             _sample_memory(out, peak)
     finally:
@@ -115,14 +117,15 @@ def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), 
             proc.wait()
     wall = time.monotonic() - t0
     if proc.returncode != 0:
-        return {"M": M, "completed": False, "reason": proc.stderr.read().decode(errors="replace")[-600:]}
+        return {"M": M, "completed": False, "topology": default_topology(M),
+                "reason": proc.stderr.read().decode(errors="replace")[-600:]}
     data = np.load(out / "trajectory.npz")
     step = data["step_time"][1:] * 1e3
     slowest = np.nanmax(data["solve_time"][1:], axis=1) * 1e3
     agents = [v for k, v in peak.items() if k.startswith("agent-")]
     summary = json.loads((out / "summary.json").read_text())
     return {
-        "M": M, "completed": True, "steps": int(data["step_time"].size), "wall_s": wall,
+        "M": M, "completed": True, "topology": default_topology(M), "steps": int(data["step_time"].size), "wall_s": wall,
         "step_ms_p50": float(np.median(step)), "step_ms_p99": float(np.percentile(step, 99)),
         "step0_ms": float(data["step_time"][0] * 1e3), "bus_ms_p50": float(np.median(step - slowest)),
         "bus_share_p50": float(np.median((step - slowest) / step)),

@@ -84,15 +84,19 @@ def markdown(results: dict, command: str) -> str:
     lines += ["", "## Multi-process lockstep (`dmpc run`, all processes on this machine)", "",
               "Step time: release of step k to its completion on the plant's clock, k = 0 (Jacobi to convergence) "
               "excluded. Bus share: step time minus the slowest agent's QP time. Memory: peak while stepping.", "",
-              "| M | steps | step median (ms) | step p99 (ms) | bus share | RSS/agent (MB) | PSS/agent (MB) | "
-              "RSS total (MB) | PSS total (MB) |", "|---|---|---|---|---|---|---|---|---|"]
+              "Topology: `mesh` (agents peer to peer) up to 64 agents, `star` (agents as clients of the "
+              "plant's router) above; wall: the whole `dmpc run`, start-up included.", "",
+              "| M | topology | steps | wall (s) | step median (ms) | step p99 (ms) | bus share | RSS/agent (MB) | "
+              "PSS/agent (MB) | RSS total (MB) | PSS total (MB) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["runtime"]:
         if r.get("completed"):
-            lines.append(f"| {r['M']} | {r['steps']} | {r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | "
+            lines.append(f"| {r['M']} | {r.get('topology', '-')} | {r['steps']} | {r['wall_s']:.0f} | "
+                         f"{r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | "
                          f"{r['bus_share_p50']:.0%} | {_fmt(r['rss_mb_per_agent'])} | {_fmt(r['pss_mb_per_agent'])} | "
                          f"{r['rss_mb_total']:.0f} | {r['pss_mb_total']:.0f} |")
         else:
-            lines.append(f"| {r['M']} | did not complete: {r.get('reason', '?')[:120]} | | | | | | | |")
+            reason = " ".join(str(r.get("reason", "?")).split())[:160].replace("|", "/")
+            lines.append(f"| {r['M']} | {r.get('topology', '-')} | did not complete: {reason} | | | | | | | | |")
     lines += ["", "## Side by side: the same closed loop, per-step time and closed-loop cost", "",
               "| M | DMPC multi-process (ms) | DMPC in-process (ms) | centralised OSQP (ms) | centralised CVXPY (ms) | "
               "cost DMPC | cost centralised OSQP | cost CVXPY | multi-process / CVXPY | multi-process / OSQP |",

@@ -21,18 +21,23 @@ class CentralQP:
     system : CoupledSystem
     P_terminal : ndarray, shape (n, n)
     horizon : int
-    terminal : {"box", "omega"}
+    terminal : {"box", "omega", "rows"}
+        ``box``: |z(N) - alpha| <= beta; ``omega``: Omega z(N) <= 1 (X^f); ``rows``: given rows
+        lower <= T z(N) <= upper (the agents' terminal sets stacked, see ``solve_rows``).
     omega : ndarray, shape (rows, n), required for ``terminal="omega"``
     settings : dict, optional
+    rows : ndarray, shape (r, n), required for ``terminal="rows"``
     """
 
     def __init__(self, system: CoupledSystem, P_terminal: np.ndarray, horizon: int, terminal: str = "box",
-                 omega: np.ndarray | None = None, settings: dict | None = None) -> None:
-        if terminal not in ("box", "omega") or (terminal == "omega" and omega is None):
-            raise ValueError("terminal must be 'box', or 'omega' with omega given")
+                 omega: np.ndarray | None = None, settings: dict | None = None, rows: np.ndarray | None = None) -> None:
+        if terminal not in ("box", "omega", "rows") or (terminal == "omega" and omega is None) \
+                or (terminal == "rows" and rows is None):
+            raise ValueError("terminal must be 'box', 'omega' with omega given, or 'rows' with rows given")
         N = horizon
         self.terminal = terminal
         self._rows = None if omega is None else omega.shape[0]
+        self._omega_norms = None if omega is None else np.abs(np.asarray(omega, float)).sum(axis=1)
         Hu, lu, uu = stack_sets([s.input_set for s in system.subsystems])
         inputs = StageRows(Hu, np.tile(lu, (N, 1)), np.tile(uu, (N, 1)))
         states = None
@@ -40,14 +45,27 @@ class CentralQP:
             sets = [s.state_set or LinearSet(np.zeros((0, s.n)), np.zeros(0), np.zeros(0)) for s in system.subsystems]
             Hx, lx, ux = stack_sets(sets)
             states = StageRows(Hx, np.tile(lx, (N, 1)), np.tile(ux, (N, 1)))
-        T = np.eye(system.n) if terminal == "box" else np.asarray(omega, float)
+        T = {"box": np.eye(system.n), "omega": omega, "rows": rows}[terminal]
+        T = np.asarray(T, float)
         self._qp = MpcQP(system.A, system.B, system.Q, system.R, P_terminal, N, inputs, states, T, settings)
 
-    def solve(self, x: np.ndarray, alpha: np.ndarray | None = None, beta: float | None = None) -> QPSolution:
-        """Solve from the global state x (n,); ``alpha`` (n,) and ``beta`` for the box terminal."""
+    def solve(self, x: np.ndarray, alpha: np.ndarray | None = None, beta: float | None = None,
+              shrink: float = 0.0) -> QPSolution:
+        """Solve from the global state x (n,); ``alpha`` (n,) and ``beta`` for the box terminal.
+
+        For ``omega``, ``shrink`` > 0 asks for X^f shrunk by a cube of that radius:
+        Omega_l z(N) <= 1 - shrink ||Omega_l||_1, i.e. sigma(z(N)) >= shrink.
+        """
         if self.terminal == "box":
             return self._qp.solve(x, None, alpha - beta, alpha + beta)
-        return self._qp.solve(x, None, np.full(self._rows, -np.inf), np.ones(self._rows))
+        if self.terminal == "rows":
+            raise ValueError("terminal 'rows': use solve_rows")
+        upper = np.ones(self._rows) if shrink == 0.0 else 1.0 - shrink * self._omega_norms
+        return self._qp.solve(x, None, np.full(self._rows, -np.inf), upper)
+
+    def solve_rows(self, x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> QPSolution:
+        """Solve from x (n,) with the terminal rows' bounds, each shape (r,)."""
+        return self._qp.solve(x, None, lower, upper)
 
 
 def stack_sets(sets: list[LinearSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,7 +15,6 @@ from dmpc.records.run_folder import RunFolderError
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130
-STAR_ABOVE = 64  # dmpc run: beyond this many agents a full peer mesh overloads a small machine
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Distributed MPC with time-varying terminal sets: design, simulate, run over Zenoh.")
@@ -24,10 +23,25 @@ app.add_typer(scenario_app, name="scenario")
 
 ScenarioArg = Annotated[Path, typer.Argument(help="Scenario YAML file.", show_default=False)]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override a field: KEY=VALUE, e.g. family.M=16 (repeatable).")]
+MethodOpt = Annotated[Optional[str], typer.Option("--method", help="Control method: tv-box (default), tv-box-opt, fixed-box, ellipsoid, ellipsoid-adaptive, centralized (sets options.method).", show_default=False)]
 
 
 class InputError(Exception):
     """A usage or input error: exit code 2, one line."""
+
+
+def _with_method(overrides: list[str] | None, method: str | None) -> list[str]:
+    """The overrides plus ``options.method`` from ``--method`` (checked: InputError if unknown)."""
+    from dmpc.methods import method_spec
+
+    extra = list(overrides or [])
+    if method is not None:
+        try:
+            method_spec(method)
+        except ValueError as exc:
+            raise InputError(f"--method: {exc}") from None
+        extra.append(f"options.method={method}")
+    return extra
 
 
 def _default_out(out: Path | None, scenario_name: str) -> Path:
@@ -92,20 +106,19 @@ def simulate(scenario: ScenarioArg,
              out: Annotated[Optional[Path], typer.Option("--out", help="Run folder to write (default: runs/<scenario>-<time>).")] = None,
              steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps to run (default: the scenario's).")] = None,
              set_: SetOpt = None,
-             quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False) -> None:
+             quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+             method: MethodOpt = None) -> None:
     """Run every agent, the barrier and the plant in this process (in-memory bus)."""
-    from dmpc.runtime.inprocess import simulate as run_inprocess
+    from dmpc.runtime.inprocess import record_run
     from dmpc.records.report import print_summary
     from dmpc.records.session import RunRecorder
 
-    prepared = _prepare(scenario, set_, steps)
+    prepared = _prepare(scenario, _with_method(set_, method), steps)
     out = _default_out(out, prepared.name)
     with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
-        run = run_inprocess(prepared, recorder.on_step)
-        summary = recorder.complete(runtime="in-process", failure=run.plant.failure or None,
-                                    rejected=run.plant.rejected, duplicates=run.plant.coordinator.duplicates)
+        summary, failure = record_run(prepared, recorder)
     print_summary(summary, out)
-    if run.plant.failure:
+    if failure:
         raise typer.Exit(1)
 
 
@@ -212,6 +225,16 @@ def _open_bus(mode: str, connect, listen, multicast: bool, lease: float | None, 
         raise typer.Exit(1) from None
 
 
+def _write_report(path: Path, report: dict) -> None:
+    """Write an agent's JSON report; a failure to write is reported, not raised."""
+    from dmpc.records.run_folder import write_json
+
+    try:
+        write_json(path, report)
+    except OSError as exc:
+        error_line(f"--report {path}: cannot write ({exc.strerror})")
+
+
 @app.command()
 def agent(scenario: ScenarioArg,
           id_: Annotated[str, typer.Option("--id", help="The subsystem this process controls (its name in the scenario).")],
@@ -220,7 +243,8 @@ def agent(scenario: ScenarioArg,
           run_id: RunIdOpt = None, design_file: DesignOpt = None, startup_timeout: StartupOpt = 30.0,
           multicast: MulticastOpt = False, lease: LeaseOpt = None, zenoh_config: ZenohConfigOpt = None,
           tls: TlsOpt = None, delay: DelayOpt = None, jitter: JitterOpt = None, loss: LossOpt = None, seed: SeedOpt = None,
-          deadline: DeadlineOpt = None, set_: SetOpt = None) -> None:
+          deadline: DeadlineOpt = None, set_: SetOpt = None,
+          report: Annotated[Optional[Path], typer.Option("--report", help="Write a JSON report here at exit: invalid messages dropped per sender and reason, duplicates, solves.")] = None) -> None:
     """Run one subsystem's agent on the Zenoh bus until the plant stops the run."""
     from dmpc.agents.process import run_agent
     from dmpc.runtime.memory import settle_after_startup
@@ -231,6 +255,7 @@ def agent(scenario: ScenarioArg,
     sigterm_as_interrupt()
     set_ = _fault_overrides(set_, delay, jitter, loss, seed, deadline)
     prepared = _prepare_for_process(scenario, set_, design_file)
+    _require_agents(prepared, "agent")
     if id_ not in prepared.names:
         raise InputError(f"--id: no subsystem {id_!r} in the scenario (subsystems: {', '.join(prepared.names)})")
     rid = _run_id(run_id, prepared)
@@ -243,6 +268,8 @@ def agent(scenario: ScenarioArg,
         raise typer.Exit(EXIT_INTERRUPTED) from None
     finally:
         bus.close()
+    if report is not None:
+        _write_report(report, {"agent": id_, "run_id": rid, "exit_code": outcome.code, **outcome.report})
     if outcome.code == 0:
         print(outcome.message)
     else:
@@ -273,6 +300,7 @@ def plant(scenario: ScenarioArg,
     sigterm_as_interrupt()
     set_ = _fault_overrides(set_, delay, jitter, loss, seed, deadline)
     prepared = _prepare_for_process(scenario, set_, design_file, steps)
+    _require_agents(prepared, "plant")
     rid = _run_id(run_id, prepared)
     bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout, tls, "plant")
     bus = _with_faults(bus, prepared, "plant")
@@ -323,6 +351,51 @@ def router(listen: ListenOpt = None,
 
 
 @app.command()
+def relay(listen: Annotated[str, typer.Option("--listen", help="HOST:PORT to accept connections on, e.g. 0.0.0.0:7448.", show_default=False)],
+          to: Annotated[str, typer.Option("--to", help="HOST:PORT to forward every connection to, e.g. the plant's or router's Zenoh port.", show_default=False)],
+          delay: Annotated[float, typer.Option("--delay", min=0, help="Milliseconds every chunk is held, in each direction.", show_default=False)],
+          jitter: Annotated[float, typer.Option("--jitter", min=0, help="Hold each chunk for delay ± MS (uniform; byte order is kept).")] = 0.0,
+          seed: SeedOpt = None) -> None:
+    """Relay TCP connections (e.g. Zenoh links) with a set delay, until Ctrl-C."""
+    import time
+
+    from dmpc.runtime.relay import Relay, RelayError, format_address, parse_address
+    from dmpc.runtime.signals import sigterm_as_interrupt
+
+    try:
+        listen_at = parse_address(listen, listen=True)
+    except ValueError as exc:
+        raise InputError(f"--listen: {exc}") from None
+    try:
+        target = parse_address(to)
+    except ValueError as exc:
+        raise InputError(f"--to: {exc}") from None
+    sigterm_as_interrupt()
+    server = Relay(listen_at, target, delay_ms=delay, jitter_ms=jitter, seed=seed)
+    try:
+        server.start()
+    except RelayError as exc:
+        error_line(f"relay: {exc}")
+        raise typer.Exit(1) from None
+    spread = f" ± {jitter:g}" if jitter else ""
+    print(f"relay {format_address(server.address)} -> {format_address(target)}, delay {delay:g}{spread} ms "
+          f"(Ctrl-C to stop)", flush=True)
+    try:
+        while server.running:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    if server.error is not None:
+        error_line(f"relay: stopped by an unexpected error ({server.error!r})")
+        raise typer.Exit(1)
+    s = server.stats
+    print(f"relay stopped: {s.connections} connections ({s.failed} without target), {s.bytes} bytes, "
+          f"at most {s.max_late_ms:.1f} ms later than the delay", flush=True)
+
+
+@app.command()
 def certs(directory: Annotated[Path, typer.Argument(help="Directory to write (created).", show_default=False)],
           scenario: Annotated[Path, typer.Option("--scenario", help="Scenario YAML: one certificate per agent, and its access control.")],
           host: Annotated[Optional[list[str]], typer.Option("--host", help="Another IP address or DNS name the processes are reached at (repeatable; 127.0.0.1 and localhost are always in).")] = None,
@@ -347,6 +420,31 @@ def certs(directory: Annotated[Path, typer.Argument(help="Directory to write (cr
     print(f"keep {directory / 'ca.key'} away from the nodes; give each node ca.pem, acl.json and its own role's files")
 
 
+def _require_agents(prepared, role: str) -> None:
+    """InputError unless the method runs agents (``centralized`` has no agent or plant process)."""
+    if prepared.method == "centralized":
+        raise InputError(f"dmpc {role}: method 'centralized' runs no agents and no plant process; "
+                         "use dmpc simulate or dmpc run, which run it in one process")
+
+
+def _run_centralized_here(prepared, out: Path | None, quiet: bool, network_flags: list[str]) -> None:
+    """``dmpc run --method centralized``: one QP over the whole system per step, in this process."""
+    from dmpc.records.report import print_summary
+    from dmpc.records.session import RunRecorder
+    from dmpc.runtime.inprocess import record_run
+
+    if network_flags:
+        raise InputError(f"{', '.join(network_flags)}: method 'centralized' runs in one process without a bus, "
+                         "so there are no links to configure")
+    out = _default_out(out, prepared.name)
+    print("method centralized: one QP over the whole system, run in this process (no agents, no Zenoh)",
+          file=sys.stderr)
+    with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
+        summary, failure = record_run(prepared, recorder)
+    print_summary(summary, out)
+    raise typer.Exit(1 if failure else 0)
+
+
 @app.command()
 def run(scenario: ScenarioArg,
         out: Annotated[Optional[Path], typer.Option("--out", help="Run folder to write (default: runs/<scenario>-<time>).")] = None,
@@ -357,22 +455,31 @@ def run(scenario: ScenarioArg,
         secure: Annotated[bool, typer.Option("--secure", help="Make certificates and access control in the run folder (tls/) and run every link over TLS with them.")] = False,
         topology: Annotated[Optional[str], typer.Option("--topology", help="mesh (agents link to each other) or star (through the plant's router); default: mesh up to 64 agents, star above.")] = None,
         delay: DelayOpt = None, jitter: JitterOpt = None, loss: LossOpt = None, seed: SeedOpt = None,
-        deadline: DeadlineOpt = None, set_: SetOpt = None) -> None:
-    """Start the plant and every agent as processes on this machine and wait for the run."""
+        deadline: DeadlineOpt = None, set_: SetOpt = None, method: MethodOpt = None) -> None:
+    """Start the plant and every agent as processes on this machine and wait for the run.
+
+    ``--method centralized`` has no agents: it runs its one QP per step in this process.
+    """
     import secrets
 
     from dmpc.records.report import print_summary
-    from dmpc.runtime.launcher import launch
+    from dmpc.runtime.launcher import TOPOLOGIES, default_topology, launch
     from dmpc.runtime.setup import prepare
 
     if tls is not None and secure:
         raise InputError("--tls and --secure exclude each other (--secure makes its own certificates)")
-    prepared = prepare(_load(scenario, _fault_overrides(set_, delay, jitter, loss, seed, deadline), steps))
+    prepared = prepare(_load(scenario, _with_method(_fault_overrides(set_, delay, jitter, loss, seed, deadline), method),
+                             steps))
+    if prepared.method == "centralized":
+        network = {"--tls": tls is not None, "--secure": secure, "--topology": topology is not None,
+                   "--run-id": run_id is not None, "--delay": delay is not None, "--jitter": jitter is not None,
+                   "--loss": loss is not None, "--deadline": deadline is not None}
+        _run_centralized_here(prepared, out, quiet, [flag for flag, given in network.items() if given])
     for role in ["plant"] + [f"agent-{name}" for name in prepared.names] if tls is not None else []:
         _security(tls, role)  # every file present before any process starts
-    if topology not in (None, "mesh", "star"):
+    if topology is not None and topology not in TOPOLOGIES:
         raise InputError(f"--topology: expected mesh or star, got {topology!r}")
-    topology = topology or ("mesh" if prepared.system.M <= STAR_ABOVE else "star")
+    topology = topology or default_topology(prepared.system.M)
     out = _default_out(out, prepared.name)
     rid = _run_id(run_id or f"{prepared.name}-{secrets.token_hex(4)}", prepared)
     result = launch(prepared, out, rid, startup_timeout=startup_timeout, show_progress=not quiet,
@@ -410,6 +517,168 @@ def bench(quick: Annotated[bool, typer.Option("--quick", help="A subset that run
         stdout_console().print(markdown(results, "dmpc bench"))
 
 
+@app.command()
+def report(run_dir: Annotated[Path, typer.Argument(help="A run folder, or a folder with comparison.json from 'dmpc compare'.", show_default=False)],
+           out: Annotated[Optional[Path], typer.Option("--out", help="Folder for the PNG files (default: RUN_DIR/figures).")] = None) -> None:
+    """Draw the paper's five figures (terminal sets, states, inputs, J, S) from a run or comparison folder."""
+    from dmpc.report import ReportError, draw
+
+    notes: list[str] = []
+    try:
+        paths = draw(run_dir, out, notes)
+    except ReportError as exc:
+        raise InputError(str(exc)) from None
+    for line in notes:
+        print(line)
+    for path in paths:
+        print(path)
+
+
+MethodsOpt = Annotated[Optional[list[str]], typer.Option("--methods", help="Methods to run (default: all): --methods tv-box centralized ...", show_default=False)]
+
+
+def _checked_methods(methods: list[str] | None) -> list[str]:
+    from dmpc.evaluation.compare import check_methods
+
+    try:
+        return check_methods(methods)
+    except ValueError as exc:
+        raise InputError(f"--methods: {exc}") from None
+
+
+def _table(title: str, header: list[str], rows: list[list[str]]):
+    from rich import box
+    from rich.table import Table
+
+    table = Table(title=title, box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    for name in header:
+        table.add_column(name, justify="left" if name == "method" else "right", no_wrap=True)
+    for row in rows:
+        table.add_row(*row)
+    return table
+
+
+@app.command()
+def compare(scenario: ScenarioArg,
+            out: Annotated[Path, typer.Option("--out", help="Folder to write: DIR/<method>/ run folders and DIR/comparison.json.")],
+            steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps per run (default: the scenario's).")] = None,
+            methods: MethodsOpt = None, set_: SetOpt = None,
+            quiet: Annotated[bool, typer.Option("--quiet", help="No progress bars.")] = False) -> None:
+    """Run every method on the same scenario in this process, compare them, and draw the figures."""
+    from dmpc.evaluation.compare import (COMPARISON, COMPARISON_HEADER, COMPARISON_LEGEND, compare as run_compare,
+                                         comparison_rows, cost_ratios)
+
+    methods = _checked_methods(methods)
+    scn = _load(scenario, set_, steps)
+    data = run_compare(scn, out, methods, show_progress=not quiet)
+    console = stdout_console()
+    console.print(_table(f"methods on '{data['scenario']}'", COMPARISON_HEADER, comparison_rows(data)))
+    console.print(COMPARISON_LEGEND)
+    ratio = cost_ratios(data).get("tv-box")
+    if ratio is not None:
+        console.print(f"closed-loop cost tv-box / centralized = {ratio:.4f}")
+    console.print(f"comparison: {out / COMPARISON}")
+    _draw_comparison_figures(out)
+
+
+def _draw_comparison_figures(out: Path) -> None:
+    """Draw the comparison figures with dmpc.report.draw_comparison, if that module provides it."""
+    try:
+        from dmpc.report import draw_comparison
+    except ImportError:
+        print("figures: not drawn (dmpc.report.draw_comparison is not available in this installation)", file=sys.stderr)
+        return
+    try:
+        paths = draw_comparison(out)
+    except Exception as exc:  # the results are written already; a drawing problem must not hide them
+        print(f"figures: not drawn ({type(exc).__name__}: {exc})", file=sys.stderr)
+        return
+    if paths:
+        print(f"figures: {', '.join(str(p) for p in paths)}")
+
+
+@app.command()
+def roa(scenario: ScenarioArg,
+        horizons: Annotated[list[int], typer.Option("--N", help="Horizons to test, e.g. --N 3 5 8 10 (the default).", show_default=False)] = [3, 5, 8, 10],  # noqa: B006
+        samples: Annotated[int, typer.Option("--samples", help="Initial states sampled (>= 1).")] = 500,
+        seed: Annotated[int, typer.Option("--seed", help="Seed of the sampling (>= 0).")] = 0,
+        box: Annotated[Optional[float], typer.Option("--box", help="Sample x(0) uniformly in |x_j| <= R (default: the largest |entry| of the scenario's x0).", show_default=False)] = None,
+        methods: MethodsOpt = None,
+        out: Annotated[Optional[Path], typer.Option("--out", help="Folder for roa.json and roa.png (default: runs/roa-<scenario>-<time>).")] = None,
+        set_: SetOpt = None,
+        quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False) -> None:
+    """Region of attraction: per method and horizon, the fraction of sampled x(0) feasible at k = 0 and converging."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from dmpc.console import stderr_console
+    from dmpc.evaluation.roa import (ROA_FILE, ROA_LEGEND, ROA_PLOT, plot_roa, region_of_attraction, roa_header,
+                                     roa_rows)
+    from dmpc.records.run_folder import write_json
+
+    if not horizons or any(N < 1 for N in horizons):
+        raise InputError(f"--N: horizons must be integers >= 1, got {' '.join(map(str, horizons)) or 'none'}")
+    if len(set(horizons)) != len(horizons):
+        raise InputError(f"--N: a horizon is listed twice: {' '.join(map(str, horizons))}")
+    if samples < 1:
+        raise InputError(f"--samples: must be >= 1, got {samples}")
+    if seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {seed}")
+    if box is not None and not (box > 0 and box < float("inf")):
+        raise InputError(f"--box: must be a positive number, got {box}")
+    methods = _checked_methods(methods)
+    scn = _load(scenario, set_)
+    out = out or _default_out(None, f"roa-{scn.name}")
+    if (out / ROA_FILE).exists():
+        raise InputError(f"--out: {out} already holds {ROA_FILE}: choose another folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out: cannot create {out}: {exc.strerror}") from None
+    progress = None
+    advance = None
+    if not quiet:
+        progress = Progress(TextColumn("[bold]roa"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                            TimeRemainingColumn(), console=stderr_console(), transient=True)
+        task = progress.add_task("roa", total=len(methods) * len(horizons) * samples)
+        advance = lambda: progress.advance(task)  # noqa: E731
+        progress.start()
+    try:
+        data = region_of_attraction(scn, sorted(horizons), methods, samples, seed, box, advance)
+    finally:
+        if progress is not None:
+            progress.stop()
+    write_json(out / ROA_FILE, data)
+    plot = plot_roa(data, out / ROA_PLOT)
+    console = stdout_console()
+    console.print(_table(f"region of attraction, '{data['scenario']}' ({samples} samples, |x_j| <= {data['box']:g}, "
+                         f"seed {seed})", roa_header(data), roa_rows(data)))
+    console.print(ROA_LEGEND)
+    console.print(f"results: {out / ROA_FILE}, plot: {plot}")
+
+
+def _expand_multi_values(args: list[str]) -> list[str]:
+    """``--N 3 5 8`` -> ``--N 3 --N 5 --N 8`` (and the same for ``--methods``): click options take
+    one value each, so the values that follow these options are given one option each."""
+    import re
+
+    takes = {"--N": re.compile(r"^[+-]?\d+(\.\d*)?$"), "--methods": re.compile(r"^[a-z][a-z0-9-]*$")}
+    out: list[str] = []
+    current, given = None, 0
+    for arg in args:
+        if current is not None and takes[current].match(arg):
+            out += [current, arg]
+            given += 1
+            continue
+        if current is not None and not given:
+            out.append(current)  # no value of its own: click reports the next argument as a bad value
+        current, given = (arg, 0) if arg in takes else (None, 0)
+        if current is None:
+            out.append(arg)
+    if current is not None and not given:
+        out.append(current)
+    return out
+
+
 def _is_scenario_error(exc: Exception) -> bool:
     """ScenarioError, checked lazily: the scenario package (pydantic) is not always loaded."""
     module = sys.modules.get("dmpc.scenario.load")
@@ -421,7 +690,7 @@ def main() -> None:
     silence_c_stdout()
     try:
         # without standalone mode, click returns the code of typer.Exit instead of raising it
-        code = app(standalone_mode=False)
+        code = app(args=_expand_multi_values(sys.argv[1:]), standalone_mode=False)
         if isinstance(code, int) and code != 0:
             sys.exit(code)
     except (DesignError, RunFolderError, InputError) as exc:

@@ -3,7 +3,8 @@
 Per step k it releases round 0 to every agent, collects their plans, runs further Jacobi rounds
 while the plans still move (k = 0: to convergence), then finalises the step: inputs (with the
 fallback of ALGORITHM.md 3.7 for missing or infeasible plans), alpha(k+1) = (A+BK) eta,
-beta(k+1) = sigma(alpha(k+1)), the plant update and the step record.
+beta(k+1) = sigma(alpha(k+1)) (or another method's terminal update, dmpc.methods.policy), the
+plant update and the step record.
 
 Inputs are method calls (``start``, ``on_plan``, ``on_deadline``, ``on_agent_lost``,
 ``on_agent_back``); outputs are lists of actions for the hosting process to carry out.
@@ -65,6 +66,8 @@ class StepRecord:
     """Everything recorded about one step.
 
     Array shapes: x (n,), u (m,), alpha (n,), x_next (n,); per-agent lists have M entries.
+    ``r`` and ``r_next`` (M,) are the ellipsoid levels of the ellipsoid methods (None otherwise);
+    those methods record alpha = 0 and beta = NaN.
     """
 
     k: int
@@ -90,6 +93,8 @@ class StepRecord:
     latency: list[float] = field(default_factory=list)
     step_time: float = float("nan")
     note: str = ""
+    r: np.ndarray | None = None
+    r_next: np.ndarray | None = None
 
 
 class Coordinator:
@@ -102,10 +107,13 @@ class Coordinator:
     plant : Plant
     options : ProtocolOptions
     run_id : str
+    policy : dmpc.methods.policy.TerminalPolicy, optional
+        The method's terminal sets: what each agent is released and how the terminal
+        parameters move (the paper's time-varying boxes by default).
     """
 
     def __init__(self, system: CoupledSystem, design: Design, plant: Plant, options: ProtocolOptions,
-                 run_id: str) -> None:
+                 run_id: str, policy=None) -> None:
         self.system = system
         self.design = design
         self.plant = plant
@@ -117,9 +125,12 @@ class Coordinator:
         K = design.gains.K
         self._K = K
         self._gamma = [s.A + s.B @ K[i] for i, s in enumerate(system.subsystems)]
-        self._AK = system.A + system.B @ design.gains.K_global()
-        self.alpha = np.array(design.alpha0, float)
-        self.beta = float(design.beta0)
+        if policy is None:
+            from dmpc.methods import terminal_policy
+
+            policy = terminal_policy("tv-box", system, design)
+        self.policy = policy
+        self.terminal = policy.initial(plant.x)
         self.k = 0
         self.iteration = 0
         self.finished = False
@@ -134,7 +145,17 @@ class Coordinator:
         self.rejected: dict[str, int] = {}
         self.duplicates = 0
         self._provided: dict[int, Plan] = {}
-        self._note = ""
+        self._note = self.terminal.note
+
+    @property
+    def alpha(self) -> np.ndarray:
+        """The terminal box centres alpha(k), shape (n,) (zeros for the ellipsoid methods)."""
+        return self.terminal.alpha
+
+    @property
+    def beta(self) -> float:
+        """The terminal box radius beta(k) (NaN for the ellipsoid methods)."""
+        return self.terminal.beta
 
     # ------------------------------------------------------------------ inputs
     def start(self) -> list:
@@ -166,20 +187,34 @@ class Coordinator:
         return self._maybe_close_round()
 
     def on_agent_lost(self, name: str) -> list:
-        """Liveliness of agent ``name`` disappeared: stop waiting for it."""
+        """Liveliness of agent ``name`` disappeared: stop waiting for it and stop releasing to it.
+
+        Its fallback applies from the open round on; the step record notes the loss.
+        """
         i = self.index.get(name)
         if i is None or self.finished:
             return []
+        if i not in self._lost:
+            self._add_note(f"agent {name} lost")
         self._lost.add(i)
         if i not in self._round:
             self._missed.add(i)
         return self._maybe_close_round()
 
-    def on_agent_back(self, name: str) -> None:
-        """Agent ``name`` is alive again: it is waited for from the next round on."""
+    def on_agent_back(self, name: str) -> bool:
+        """Agent ``name`` is ready again: it is released to and waited for from the next round on.
+
+        Returns True if it had been lost (the step record then notes its return).
+        """
         i = self.index.get(name)
-        if i is not None:
-            self._lost.discard(i)
+        if i is None or i not in self._lost or self.finished:
+            return False
+        self._lost.discard(i)
+        self._add_note(f"agent {name} back")
+        return True
+
+    def _add_note(self, text: str) -> None:
+        self._note = f"{self._note}; {text}" if self._note else text
 
     # ------------------------------------------------------------------ checks
     def check(self, msg: PlanMessage) -> str | None:
@@ -214,8 +249,9 @@ class Coordinator:
         self._missed = set(self._lost)
         actions: list = []
         x_parts = self.system.split_state(self.plant.x)
-        alpha_parts = self.system.split_state(self.alpha)
         for i, name in enumerate(self.names):
+            if i in self._lost:
+                continue  # its plan would not be used; the first release after its Ready tells it it is back
             nb = self.system.neighbours[i]
             assumed = {}
             for j in nb:
@@ -225,9 +261,10 @@ class Coordinator:
                 assumed[self.names[j]] = None if ref is None else (ref.k, ref.iteration)
             provided = {self.names[j]: (self._provided[j].z, self._provided[j].v)
                         for j in nb if j != i and j in self._provided}
+            centre, size = self.policy.release(self.terminal, i)
             release = Release(run=self.run_id, k=self.k, iteration=self.iteration, target=name,
                               states={self.names[j]: x_parts[j].copy() for j in nb},
-                              alpha=alpha_parts[i].copy(), beta=self.beta, assumed=assumed, provided=provided)
+                              alpha=centre, beta=size, assumed=assumed, provided=provided)
             actions.append(SendRelease(release))
         actions.append(RoundOpened(self.k, self.iteration))
         actions.extend(self._maybe_close_round())
@@ -265,18 +302,19 @@ class Coordinator:
         """Replace the first round's plans by the centralised QP's plan (ALGORITHM.md 3.4)."""
         from dmpc.centralized import CentralQP
 
-        qp = CentralQP(self.system, self.design.gains.P_global(), self.N, terminal="box")
-        sol = qp.solve(self.plant.x, self.alpha, self.beta)
+        T, lower, upper = self.policy.joint_terminal(self.terminal)
+        qp = CentralQP(self.system, self.design.gains.P_global(), self.N, terminal="rows", rows=T)
+        sol = qp.solve_rows(self.plant.x, lower, upper)
         if not sol.status.feasible:
-            self._note = (f"k=0: round 0 infeasible for agents {', '.join(infeasible)} and the centralised QP is "
-                          f"{sol.status.value} too")
+            self._add_note(f"k=0: round 0 infeasible for agents {', '.join(infeasible)} and the centralised QP is "
+                           f"{sol.status.value} too")
             return
         for i in range(self.system.M):
             plan = Plan(0, 0, sol.z[:, self.system.xs(i)], sol.v[:, self.system.us(i)])
             self._step_latest[i] = plan
             self._provided[i] = plan
-        self._note = (f"k=0: round 0 infeasible from decoupled rollouts for agents {', '.join(infeasible)}; "
-                      "started from the centralised QP's plan")
+        self._add_note(f"k=0: round 0 infeasible from decoupled rollouts for agents {', '.join(infeasible)}; "
+                       "started from the centralised QP's plan")
 
     def _round_change(self) -> float:
         """Largest change between this round's plans and the previous round's (inf if none)."""
@@ -295,7 +333,6 @@ class Coordinator:
         system, M = self.system, self.system.M
         x = self.plant.x.copy()
         x_parts = system.split_state(x)
-        alpha_parts = system.split_state(self.alpha)
         u_parts, eta_parts, J_agents = [], [], []
         status, fallback, reasons, solve_time, qp_iters, latency, plans_z, plans_v = ([] for _ in range(8))
         for i in range(M):
@@ -320,27 +357,27 @@ class Coordinator:
                 last = self.last_plan[i]
                 u_c = shifted_input(last, self.k, x_parts[i], self._gamma[i], self._K[i])
                 u_parts.append(project_onto(sub.input_set, u_c))
-                eta_parts.append(alpha_parts[i].copy())
                 J_agents.append(self._candidate_cost(i, last) if last is not None else float("nan"))
                 fallback.append(True)
-                reasons.append("missed" if msg is None else f"qp {msg.status}")
+                reasons.append(("lost" if i in self._lost else "missed") if msg is None else f"qp {msg.status}")
                 z_c, v_c = self._candidate(i, last, x_parts[i])
+                eta_parts.append(self.policy.fallback_terminal(self.terminal, i, z_c[-1]))
                 plans_z.append(z_c)
                 plans_v.append(v_c)
         u = np.concatenate(u_parts)
         eta = np.concatenate(eta_parts)
-        alpha_next = self._AK @ eta
-        beta_next = self.design.terminal.sigma(alpha_next)
+        nxt = self.policy.update(self.terminal, eta)
+        note = "; ".join(t for t in (self._note, nxt.note) if t)
         S = float(sum(x_parts[i] @ x_parts[i] / len(system.neighbours[i]) for i in range(M)))
         x_next = self.plant.step(u)
         record = StepRecord(
             k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta, x_next=x_next.copy(),
-            alpha_next=alpha_next, beta_next=beta_next, J=float(np.sum(J_agents)), J_agents=J_agents, S=S,
+            alpha_next=nxt.alpha, beta_next=nxt.beta, J=float(np.sum(J_agents)), J_agents=J_agents, S=S,
             rounds=self.iteration + 1, max_change=self._max_change, status=status, fallback=fallback,
             fallback_reason=reasons, solve_time=solve_time, qp_iterations=qp_iters, plans_z=plans_z,
-            plans_v=plans_v, latency=latency, note=self._note)
+            plans_v=plans_v, latency=latency, note=note, r=self.terminal.r, r_next=nxt.r)
         actions: list = [StepCompleted(record)]
-        self.alpha, self.beta = alpha_next, beta_next
+        self.terminal = nxt
         self.k += 1
         self.iteration = 0
         self._step_latest = {}

@@ -64,6 +64,7 @@ class PlantNode:
         self._step_opened_at = 0.0
         self._received_at: dict[str, float] = {}
         self._sent_at: dict[str, float] = {}
+        self._stop_payload: bytes | None = None
         bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan)
         bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
         bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
@@ -93,7 +94,9 @@ class PlantNode:
             return
         self.ready.add(name)
         if self.started:
-            self.coordinator.on_agent_back(name)
+            if self.coordinator.on_agent_back(name):
+                log.warning("plant: agent %s back at step %d; waited for again from the next round", name,
+                            self.coordinator.k)
         else:
             self._maybe_start()
 
@@ -187,7 +190,14 @@ class PlantNode:
     def _stop(self, reason: str) -> None:
         self.finished = True
         msg = Stop(run=self.run_id, k=self.coordinator.k, reason=reason)
-        self.bus.publish(keys.control(self.run_id), encode(msg))
+        self._stop_payload = encode(msg)
+        self.bus.publish(keys.control(self.run_id), self._stop_payload)
+
+    def repeat_stop(self) -> None:
+        """Send the run's ``Stop`` again (agents ignore copies): a lost one must not leave an agent
+        to find the plant gone instead of the run finished."""
+        if self._stop_payload is not None:
+            self.bus.publish(keys.control(self.run_id), self._stop_payload)
 
     def fail(self, reason: str) -> None:
         """Abort the run: tell every agent and stop."""

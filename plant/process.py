@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dmpc.bus.interface import Bus
+from dmpc.methods import terminal_policy
 from dmpc.plant.barrier import Coordinator
 from dmpc.plant.dynamics import Plant
 from dmpc.plant.node import PlantNode
@@ -14,6 +15,7 @@ EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_INTERRUPTED = 130
 LINGER = 2.0
+STOP_REPEAT = 0.2
 
 
 @dataclass(frozen=True)
@@ -29,7 +31,9 @@ def run_plant(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, 
 
     Ctrl-C (or SIGTERM) stops the agents and keeps every completed step in the run folder.
     """
-    coordinator = Coordinator(prepared.system, prepared.design, Plant(prepared.system), prepared.protocol, run_id)
+    policy = terminal_policy(prepared.method, prepared.system, prepared.design)
+    coordinator = Coordinator(prepared.system, prepared.design, Plant(prepared.system), prepared.protocol, run_id,
+                              policy=policy)
     node = PlantNode(bus, coordinator, prepared.digest, recorder.on_step, mode=prepared.mode, dt=prepared.dt,
                      deadline=prepared.deadline)
     node.announce()
@@ -46,11 +50,12 @@ def run_plant(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, 
         bus.run(until=lambda: node.finished)
     except KeyboardInterrupt:
         node.abort("aborted")
-        summary = recorder.complete(runtime=runtime, aborted="interrupted", rejected=node.rejected)
+        summary = recorder.complete(runtime=runtime, aborted="interrupted", rejected=node.rejected,
+                                    rejected_reasons=node.rejects.reasons)
         linger(bus, node)
         return PlantOutcome(EXIT_INTERRUPTED, f"plant: interrupted after {coordinator.k} steps", summary)
     summary = recorder.complete(runtime=runtime, failure=node.failure or None, rejected=node.rejected,
-                                duplicates=coordinator.duplicates)
+                                rejected_reasons=node.rejects.reasons, duplicates=coordinator.duplicates)
     linger(bus, node)
     if node.failure:
         return PlantOutcome(EXIT_FAILED, f"plant: {node.failure}", summary)
@@ -62,9 +67,13 @@ def linger(bus: Bus, node: PlantNode, timeout: float = LINGER) -> None:
 
     Closing at once could withdraw the plant's liveliness token before the Stop message has
     reached every agent (through a router they travel different paths), and an agent would
-    then report a lost plant instead of a finished run.
+    then report a lost plant instead of a finished run. Stop is repeated every
+    ``STOP_REPEAT`` s meanwhile, in case a copy was lost (injected loss drops it too).
     """
+    end = bus.now() + timeout
     try:
-        bus.run(until=lambda: not node.alive, timeout=timeout)
+        while node.alive and bus.now() < end:
+            if not bus.run(until=lambda: not node.alive, timeout=min(STOP_REPEAT, end - bus.now())):
+                node.repeat_stop()
     except KeyboardInterrupt:
         pass

@@ -2,28 +2,15 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from dmpc import cli
 from tests.e2e_helpers import run_cli
+from tests.helpers.cli import call
 
 BAD = Path(__file__).parent / "data" / "bad_scenarios"
-
-
-def call(monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
-    """Run ``dmpc argv`` in this process through the real entry point."""
-    monkeypatch.setattr(sys, "argv", ["dmpc", *argv])
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.mark.parametrize("path", sorted(BAD.iterdir()), ids=lambda p: p.name)

@@ -10,17 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from tests.e2e_helpers import (DMPC, ROOT, Processes, free_port, max_abs_diff, pid_alive, run_cli, step_lines,
+from tests.e2e_helpers import (DMPC, ROOT, free_port, max_abs_diff, pid_alive, run_cli, step_lines,
                                wait_for)
 
 pytestmark = pytest.mark.e2e
-
-
-@pytest.fixture
-def procs(tmp_path):
-    p = Processes(tmp_path)
-    yield p
-    p.cleanup()
 
 
 @pytest.fixture(scope="module")

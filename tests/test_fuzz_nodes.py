@@ -22,7 +22,7 @@ from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.memory import MemoryBus
 from dmpc.bus.messages import PLANT, PlanMessage, Ready, Release, Stop
 from dmpc.mpc_qp import QPStatus
-from dmpc.plant.barrier import Coordinator, ProtocolOptions, RunFinished, SendRelease, StepCompleted
+from dmpc.plant.barrier import Coordinator, ProtocolOptions, StepCompleted
 from dmpc.plant.dynamics import Plant
 from dmpc.plant.node import PlantNode
 from dmpc.runtime.setup import prepare

@@ -6,14 +6,11 @@ import threading
 import time
 
 import pytest
-import zenoh
-
 from dmpc.bus.session import (
     BusError,
     TlsFiles,
     check_endpoint,
     free_tcp_port,
-    open_session,
     session_config,
 )
 from dmpc.bus.zenoh_bus import ZenohBus

@@ -96,6 +96,8 @@ class RunFolder:
             "step_time": rec.step_time, "x_next": rec.x_next, "alpha_next": rec.alpha_next,
             "beta_next": rec.beta_next, "note": rec.note,
         }
+        if rec.r is not None:
+            line["r"], line["r_next"] = rec.r, rec.r_next
         self._log.write(json.dumps(_jsonable(line)) + "\n")
         self._log.flush()
 
@@ -115,7 +117,10 @@ class RunFolder:
 
 
 def trajectory_arrays(system: CoupledSystem, records: list[StepRecord]) -> dict[str, np.ndarray]:
-    """Arrays of a run: x (K+1, n), u (K, m), alpha (K+1, n), beta (K+1,), J (K,), S (K+1,), ..."""
+    """Arrays of a run: x (K+1, n), u (K, m), alpha (K+1, n), beta (K+1,), J (K,), S (K+1,), ...
+
+    The ellipsoid methods add r (K+1, M), the levels r_i(k).
+    """
     K = len(records)
     M = system.M
     if K == 0:
@@ -142,6 +147,8 @@ def trajectory_arrays(system: CoupledSystem, records: list[StepRecord]) -> dict[
         "step_time": np.array([r.step_time for r in records], dtype=float),
         "max_change": np.array([r.max_change for r in records], dtype=float),
     }
+    if records[0].r is not None:
+        arrays["r"] = np.vstack([r.r for r in records] + [records[-1].r_next])
     for i, s in enumerate(system.subsystems):
         arrays[f"plan_z_{s.name}"] = np.array([r.plans_z[i] for r in records])
         arrays[f"plan_v_{s.name}"] = np.array([r.plans_v[i] for r in records])

@@ -53,8 +53,9 @@ class RunRecorder:
         """Write the arrays and the summary; returns the summary."""
         if self._progress is not None:
             self._progress.stop()
-        info = {"scenario": self.prepared.name, "design_digest": self.prepared.digest, "method": "tv-box",
-                "wall_time_s": time.monotonic() - self._started, "rejected": {}, "duplicates": 0}
+        info = {"scenario": self.prepared.name, "design_digest": self.prepared.digest, "method": self.prepared.method,
+                "wall_time_s": time.monotonic() - self._started, "rejected": {}, "rejected_reasons": {},
+                "duplicates": 0, "agents": {}}
         info.update({k: v for k, v in extra.items() if v is not None})
         self.summary = self.folder.finish(info)
         return self.summary

@@ -48,6 +48,7 @@ def bundle_json(prepared: Prepared) -> dict:
         "bundle_version": BUNDLE_VERSION,
         "name": prepared.name,
         "coupling": prepared.coupling,
+        "method": prepared.method,
         "subsystems": [{"name": s.name, "A": s.A.tolist(), "B": s.B.tolist(), "Q": s.Q.tolist(), "R": s.R.tolist(),
                         "x0": s.x0.tolist(), "input": _set_json(s.input_set), "state": _set_json(s.state_set)}
                        for s in system.subsystems],
@@ -90,9 +91,11 @@ def load_bundle(path: Path) -> Prepared:
         faults = d["faults"]
         plan = FaultPlan(default=LinkFault(**faults["default"]),
                          links=tuple((s, r, LinkFault(**l)) for s, r, l in faults["links"]), seed=int(faults["seed"]))
-        prepared = Prepared(scenario=None, system=system, design=design, digest=design_digest(design),
+        method = str(d.get("method", "tv-box"))
+        prepared = Prepared(scenario=None, system=system, design=design, digest=design_digest(design, method),
                             protocol=ProtocolOptions(**d["protocol"]), mode=d["mode"], dt=float(d["dt"]),
-                            deadline=d["deadline"], faults=plan, name=d["name"], coupling=d["coupling"])
+                            deadline=d["deadline"], faults=plan, name=d["name"], coupling=d["coupling"],
+                            method=method)
     except (OSError, KeyError, TypeError, ValueError, IndexError) as exc:
         raise ValueError(f"{path}: not a usable run bundle ({exc})") from None
     if prepared.digest != design_data.get("digest"):

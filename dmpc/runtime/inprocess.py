@@ -1,4 +1,8 @@
-"""Every node of a run in one process, on the in-memory bus (``dmpc simulate``)."""
+"""Every node of a run in one process, on the in-memory bus (``dmpc simulate``).
+
+The ``centralized`` method has no nodes: :func:`record_run` runs it as one QP per step
+(dmpc.runtime.central) and records it the same way.
+"""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -9,6 +13,7 @@ from dmpc.agents.node import AgentNode
 from dmpc.bus.faults import FaultyBus
 from dmpc.bus.interface import Bus
 from dmpc.bus.memory import MemoryBus
+from dmpc.methods import method_spec, terminal_policy
 from dmpc.plant.barrier import Coordinator, StepRecord
 from dmpc.plant.dynamics import Plant
 from dmpc.plant.node import PlantNode
@@ -41,12 +46,13 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
     else:
         view = lambda b, name: FaultyBus(b, name, prepared.faults)  # noqa: E731
     system, design = prepared.system, prepared.design
-    coordinator = Coordinator(system, design, Plant(system), prepared.protocol, run_id)
+    coordinator = Coordinator(system, design, Plant(system), prepared.protocol, run_id,
+                              policy=terminal_policy(prepared.method, system, design))
     plant = PlantNode(view(bus, "plant"), coordinator, prepared.digest, on_step, mode=prepared.mode,
                       dt=prepared.dt, deadline=prepared.deadline)
     agents = []
     for i, name in enumerate(prepared.names):
-        controller = AgentController(system, design, i, coupling=prepared.coupling)
+        controller = AgentController(system, design, i, coupling=prepared.coupling, method=prepared.method)
         agents.append(AgentNode(view(bus, name), controller, prepared.names, run_id, prepared.digest,
                                 plan_wait=prepared.plan_wait))
     plant.announce()
@@ -71,3 +77,22 @@ def simulate(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: 
     if not finished:
         run.plant.fail("the in-memory run stalled (no events left before the last step)")
     return run
+
+
+def record_run(prepared: Prepared, recorder) -> tuple[dict, str]:
+    """Run the prepared method in this process into a RunRecorder and complete its records.
+
+    Distributed methods run their nodes on the in-memory bus (:func:`simulate`); ``centralized``
+    runs one QP per step. Returns the summary and the failure ("" if none).
+    """
+    if not method_spec(prepared.method).distributed:
+        from dmpc.runtime.central import CentralLoop
+
+        result = CentralLoop(prepared.system, prepared.design).run(prepared.protocol.steps, recorder.on_step)
+        summary = recorder.complete(runtime="in-process (centralized, no agents)", failure=result.failure or None)
+        return summary, result.failure
+    run = simulate(prepared, recorder.on_step)
+    summary = recorder.complete(runtime="in-process", failure=run.plant.failure or None, rejected=run.plant.rejected,
+                                rejected_reasons=run.plant.rejects.reasons, duplicates=run.plant.coordinator.duplicates,
+                                agents={a.name: a.report() for a in run.agents})
+    return summary, run.plant.failure

@@ -85,6 +85,15 @@ def prepare_run_folder(out: Path, prepared: Prepared) -> tuple[Path, Path]:
     return scenario_path, design_path
 
 
+STAR_ABOVE = 64  # beyond this many agents a full peer mesh overloads a small machine (liveliness leases expire)
+TOPOLOGIES = ("mesh", "star")
+
+
+def default_topology(agents: int) -> str:
+    """``mesh`` up to ``STAR_ABOVE`` agents, ``star`` above."""
+    return "mesh" if agents <= STAR_ABOVE else "star"
+
+
 def child_commands(prepared: Prepared, out: Path, scenario_path: Path, design_path: Path, run_id: str, port: int,
                    startup_timeout: float, extra: list[str] | None = None, tls_dir: Path | None = None,
                    topology: str = "mesh") -> list[Child]:
@@ -110,7 +119,7 @@ def child_commands(prepared: Prepared, out: Path, scenario_path: Path, design_pa
     agent_common = [arg for arg in common if arg not in ("--design", str(design_path))]
     for name in prepared.names:
         children.append(Child(f"agent-{name}", base + ["agent", str(out / BUNDLE), "--id", name, "--connect", endpoint]
-                              + agent_net + agent_common,
+                              + agent_net + agent_common + ["--report", str(logs / f"agent-{name}.json")],
                               logs / f"agent-{name}.log"))
     return children
 
@@ -238,12 +247,34 @@ def _still_running_after(children: list[Child], timeout: float) -> bool:
     return True
 
 
-def _result(children: list[Child], out: Path, failed: dict[str, int]) -> LaunchResult:
-    summary = None
+def merge_agent_reports(out: Path, children: list[Child]) -> dict | None:
+    """Add each agent's report (``logs/agent-<name>.json``) to ``summary.json`` as ``agents``.
+
+    The plant writes the summary before the agents exit; their drop counts are known only to
+    them. Returns the summary, or None if the plant wrote none.
+    """
     try:
         summary = json.loads((out / "summary.json").read_text())
     except (FileNotFoundError, json.JSONDecodeError):
-        pass
+        return None
+    agents = {}
+    for child in children:
+        if not child.role.startswith("agent-"):
+            continue
+        try:
+            report = json.loads((out / "logs" / f"{child.role}.json").read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            continue  # killed before it could write one
+        if isinstance(report, dict):
+            agents[child.role[len("agent-"):]] = {k: v for k, v in report.items() if k not in ("agent", "run_id")}
+    if agents:
+        summary["agents"] = agents
+        write_json(out / "summary.json", summary)
+    return summary
+
+
+def _result(children: list[Child], out: Path, failed: dict[str, int]) -> LaunchResult:
+    summary = merge_agent_reports(out, children)
     if not failed:
         return LaunchResult(0, "finished", summary)
     lines = []

@@ -39,6 +39,8 @@ class Prepared:
         The scenario's name.
     coupling : str
         ``feedforward`` or ``nominal``.
+    method : str
+        The control method (:mod:`dmpc.methods`), ``tv-box`` by default.
     """
 
     scenario: "Scenario | None"
@@ -52,6 +54,7 @@ class Prepared:
     faults: FaultPlan = FaultPlan()
     name: str = "scenario"
     coupling: str = "feedforward"
+    method: str = "tv-box"
 
     @property
     def names(self) -> list[str]:
@@ -81,8 +84,12 @@ def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | No
     return design_system(system, gains=scenario.design.gains, given=given, **kwargs)
 
 
-def design_digest(design: Design) -> str:
-    text = json.dumps(design.to_json(), sort_keys=True)
+def design_digest(design: Design, method: str = "tv-box") -> str:
+    """Short hash of the design, and of the method unless it is the default ``tv-box``."""
+    data = design.to_json()
+    if method != "tv-box":
+        data["method"] = method
+    text = json.dumps(data, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -106,9 +113,9 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
         raise ScenarioError("faults.loss: lost messages need a deadline in lockstep mode, or the run would wait "
                             "for them forever: set options.deadline (--deadline S) or options.mode: realtime",
                             field="faults.loss")
-    return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design),
+    return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design, opts.method),
                     protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario),
-                    name=scenario.name, coupling=opts.coupling)
+                    name=scenario.name, coupling=opts.coupling, method=opts.method)
 
 
 def fault_plan(scenario: Scenario) -> FaultPlan:

@@ -18,6 +18,8 @@ from typing import Annotated, Literal, Optional, Union
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema, model_validator
 
+from dmpc.methods import METHOD_NAMES
+
 __all__ = [
     "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "FamilyCouplingSpec", "FaultsSpec",
     "LinkFaultSpec", "OptionsSpec", "PolytopeSpec", "RevisionBoundSpec", "Scenario", "SpecError",
@@ -414,6 +416,14 @@ class OptionsSpec(_Model):
     tolerance: PosFloat = Field(1e-9, description="Jacobi stops early when the largest plan change is below this.")
     initial_iterations: PosInt = Field(200, description="Maximum Jacobi rounds at k = 0 (iterate to convergence).")
     initial_tolerance: PosFloat = Field(1e-9, description="Jacobi convergence tolerance at k = 0.")
+    method: Literal[METHOD_NAMES] = Field(
+        "tv-box", description="Control method. 'tv-box': the paper's time-varying terminal boxes; 'tv-box-opt': the "
+                              "same with alpha(0), beta(0) = sigma(alpha(0)) chosen by the centralised QP at k = 0; "
+                              "'fixed-box': the boxes held at alpha(0), beta(0); 'ellipsoid': terminal ellipsoids "
+                              "x_i' P_i x_i <= r at the static common level (imposed through inscribed polytopes); "
+                              "'ellipsoid-adaptive': the same with levels r_i(k+1) = r_i(k) + eta' Gamma_i eta; "
+                              "'centralized': one QP over the whole system with X^f as terminal set, no agents "
+                              "(the optimality reference).")
     mode: Literal["lockstep", "realtime"] = Field(
         "lockstep", description="'lockstep': advance as soon as all plans are in; 'realtime': advance every dt.")
     dt: PosFloat = Field(0.1, description="Seconds per step in realtime mode.")

@@ -8,6 +8,7 @@ role           may publish (put, liveliness token)    may subscribe to
 agent-I        plan/I, ready/I; token alive/agent-I   release/I, plan/J for J in N_I, control,
                                                       alive/*
 plant          release/*, control; token alive/plant  plan/*, ready/*, alive/*
+               (relays as a router: plan/*, alive/*)
 router         relays: everything under dmpc/R/**     everything under dmpc/R/**
 =============  =====================================  ==========================================
 
@@ -60,12 +61,12 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     alive_all = keys.alive_prefix(R)
     rules, subjects, policies = [], [], []
 
-    def role(name: str, puts: list[str], subs: list[str], token: str, receives: list[str]) -> None:
+    def role(name: str, puts: list[str], subs: list[str], tokens: list[str], receives: list[str]) -> None:
         rid = name
         rules.extend([
             _rule(f"{rid} put", "ingress", ["put"], puts),
             _rule(f"{rid} subscribe", "ingress", ["declare_subscriber"], subs),
-            _rule(f"{rid} token", "ingress", ["liveliness_token"], [token]),
+            _rule(f"{rid} token", "ingress", ["liveliness_token"], tokens),
             _rule(f"{rid} watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], [alive_all]),
             _rule(f"{rid} receive", "egress", ["put"], receives),
         ])
@@ -74,12 +75,15 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
                                               f"{rid} receive", "declarations"], "subjects": [rid]})
 
     rules.append(_rule("declarations", "egress", _DECLARES + ["liveliness_query"], [root]))
-    role("plant", [keys.release(R, "*"), keys.control(R)], [keys.plan(R, "*"), keys.ready(R, "*")],
-         keys.alive(R, "plant"), [keys.plan(R, "*"), keys.ready(R, "*")])
+    # In the star topology the plant's session is the agents' router: it forwards their plans
+    # and liveliness tokens, which every agent already checked at that first hop. So the plant
+    # may bring in plans and tokens of any role; it is the run's root of trust in any case.
+    role("plant", [keys.release(R, "*"), keys.control(R), keys.plan(R, "*")],
+         [keys.plan(R, "*"), keys.ready(R, "*")], [alive_all], [keys.plan(R, "*"), keys.ready(R, "*")])
     for name in names:
         own = keys.agent_role(name)
         subs = [keys.release(R, name), keys.control(R)] + [keys.plan(R, j) for j in neighbours[name]]
-        role(own, [keys.plan(R, name), keys.ready(R, name)], subs, keys.alive(R, own), subs)
+        role(own, [keys.plan(R, name), keys.ready(R, name)], subs, [keys.alive(R, own)], subs)
     rules.extend([_rule("relay in", "ingress", _ALL, [root]), _rule("relay out", "egress", _ALL, [root])])
     subjects.append({"id": "router", "cert_common_names": ["router"]})
     policies.append({"id": "router", "rules": ["relay in", "relay out"], "subjects": ["router"]})

@@ -66,6 +66,7 @@ def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
     data = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                              serialization.NoEncryption())
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    os.fchmod(fd, 0o600)  # a key file that existed keeps its mode through os.open
     with os.fdopen(fd, "wb") as fh:
         fh.write(data)
 
@@ -161,7 +162,8 @@ def make_run_security(directory: str | Path, system, hosts: Sequence[str] = DEFA
     Raises
     ------
     ValueError
-        The directory already holds a CA (without ``force``), or a host or run id is malformed.
+        The directory already holds a CA (without ``force``), a host or run id is malformed, or
+        the directory cannot be written.
     """
     from dmpc.security.acl import scenario_access_control, write_acl
 
@@ -171,6 +173,9 @@ def make_run_security(directory: str | Path, system, hosts: Sequence[str] = DEFA
                          "or pass --force to replace them")
     acl = scenario_access_control(system, run_id)
     roles = role_names(s.name for s in system.subsystems)
-    make_certificates(directory, roles, hosts, days)
-    write_acl(directory, acl)
+    try:
+        make_certificates(directory, roles, hosts, days)
+        write_acl(directory, acl)
+    except OSError as exc:
+        raise ValueError(f"{directory}: cannot write the certificates ({exc.strerror or exc})") from None
     return roles

@@ -1,0 +1,1 @@
+"""Evaluation across methods: side-by-side runs (compare) and the region of attraction (roa)."""

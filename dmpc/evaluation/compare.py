@@ -1,0 +1,142 @@
+"""``dmpc compare``: every method on one scenario, each into a normal run folder, side by side.
+
+The offline design is computed once and reused by every method (they share it by definition).
+``DIR/<method>/`` is the run folder of each method; ``DIR/comparison.json`` holds, per method:
+
+| key | meaning |
+|---|---|
+| ``run_dir`` | the method's run folder, relative to DIR |
+| ``closed_loop_cost`` | sum_k x(k)'Q x(k) + u(k)'R u(k) |
+| ``J``, ``S`` | the lists over k (``summary.json``) |
+| ``steps_to_1e-3`` | the first k with ||x(k)||_inf < 1e-3, or null if never |
+| ``feasible`` | every QP of every step solved |
+| ``fallbacks`` | fallbacks applied (agent-steps) |
+| ``solve_time_median_s`` | median QP solve time |
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from dmpc.methods import METHOD_NAMES, method_spec
+from dmpc.records.run_folder import STEP_LOG, RunFolderError, write_json
+
+COMPARISON = "comparison.json"
+CONVERGED = 1e-3
+
+
+def steps_to(x: np.ndarray, tol: float = CONVERGED) -> int | None:
+    """The first k with ||x(k)||_inf < tol, or None; x has shape (K+1, n)."""
+    hit = np.flatnonzero(np.max(np.abs(x), axis=1) < tol)
+    return int(hit[0]) if hit.size else None
+
+
+def check_methods(methods: list[str] | None) -> list[str]:
+    """The methods to run (all by default), checked; ValueError naming an unknown one."""
+    if not methods:
+        return list(METHOD_NAMES)
+    for name in methods:
+        method_spec(name)
+    if len(set(methods)) != len(methods):
+        raise ValueError(f"a method is listed twice: {', '.join(methods)}")
+    return list(methods)
+
+
+def check_out(out: Path, methods: list[str]) -> None:
+    """RunFolderError if DIR already holds a comparison or a run of one of the methods."""
+    if (out / COMPARISON).exists():
+        raise RunFolderError(f"{out} already holds a comparison ({COMPARISON} exists): choose another --out")
+    for name in methods:
+        if (out / name / STEP_LOG).exists():
+            raise RunFolderError(f"{out / name} already holds a run ({STEP_LOG} exists): choose another --out")
+
+
+def method_entry(run_dir: Path, out: Path, summary: dict) -> dict:
+    """The comparison.json entry of one method's run folder."""
+    x = np.load(run_dir / "trajectory.npz")["x"]
+    return {
+        "run_dir": str(run_dir.relative_to(out)),
+        "closed_loop_cost": float(summary["closed_loop_cost"]),
+        "J": summary["J"],
+        "S": summary["S"],
+        "steps_to_1e-3": steps_to(x),
+        "feasible": bool(summary["feasible"]),
+        "fallbacks": int(summary["fallbacks"]),
+        "solve_time_median_s": summary.get("solve_time_median_s"),
+    }
+
+
+def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
+            on_method: Callable[[str, dict], None] | None = None) -> dict:
+    """Run each method in this process and write ``comparison.json``; returns its content.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        The validated scenario (overrides applied); its ``options.method`` is replaced by each method.
+    out : Path
+        The comparison folder (created).
+    methods : list of str
+        Checked with :func:`check_methods`.
+    show_progress : bool
+        A progress bar per run.
+    on_method : callable (method, entry), optional
+        Called after each method's run.
+    """
+    from dmpc.records.session import RunRecorder
+    from dmpc.runtime.inprocess import record_run
+    from dmpc.runtime.setup import prepare
+
+    check_out(out, methods)
+    design_data = None
+    entries: dict[str, dict] = {}
+    for method in methods:
+        scn = scenario.model_copy(update={"options": scenario.options.model_copy(update={"method": method})})
+        prepared = prepare(scn, design_data=design_data)
+        if design_data is None:
+            design_data = prepared.design_json()
+        run_dir = out / method
+        with RunRecorder(run_dir, prepared, show_progress=show_progress) as recorder:
+            summary, _failure = record_run(prepared, recorder)
+        entries[method] = method_entry(run_dir, out, summary)
+        if on_method is not None:
+            on_method(method, entries[method])
+    data = {"scenario": scenario.name, "methods": entries}
+    write_json(out / COMPARISON, data)
+    return data
+
+
+def cost_ratios(data: dict, reference: str = "centralized") -> dict[str, float | None]:
+    """closed-loop cost / the reference method's, per method (None without the reference)."""
+    ref = data["methods"].get(reference)
+    if ref is None or not ref["closed_loop_cost"]:
+        return {m: None for m in data["methods"]}
+    return {m: e["closed_loop_cost"] / ref["closed_loop_cost"] for m, e in data["methods"].items()}
+
+
+def comparison_rows(data: dict) -> list[list[str]]:
+    """The comparison as table rows (strings), one per method, in the order run."""
+    ratios = cost_ratios(data)
+    rows = []
+    for method, e in data["methods"].items():
+        ratio = ratios[method]
+        solve = e["solve_time_median_s"]
+        rows.append([method, "yes" if e["feasible"] else "no", str(e["fallbacks"]), f"{e['closed_loop_cost']:.4f}",
+                     "-" if ratio is None else f"{ratio:.4f}",
+                     "never" if e["steps_to_1e-3"] is None else str(e["steps_to_1e-3"]),
+                     "-" if solve is None else f"{solve * 1e6:.0f}"])
+    return rows
+
+
+COMPARISON_HEADER = ["method", "feasible", "fallbacks", "cost", "/ central", "k to 1e-3", "QP us"]
+COMPARISON_LEGEND = ("feasible: every QP solved; cost: closed-loop sum of x'Qx + u'Ru; / central: that cost over the "
+                     "centralised one; k to 1e-3: first k with ||x(k)||_inf < 1e-3; QP us: median solve time")
+
+
+def comparison_markdown(data: dict) -> str:
+    """The comparison table in Markdown."""
+    lines = ["| " + " | ".join(COMPARISON_HEADER) + " |", "|" + "---|" * len(COMPARISON_HEADER)]
+    lines += ["| " + " | ".join(row) + " |" for row in comparison_rows(data)]
+    return "\n".join(lines)

@@ -1,0 +1,93 @@
+"""A distributed run without a bus: the coordinator's releases answered by direct solves.
+
+The same Coordinator and AgentControllers as ``dmpc simulate``, wired together by function
+calls instead of messages: no codec, no event loop, no clock. The agents' QPs are set up once
+and reused for every run, so many runs from different initial states (the region of
+attraction) cost only their solves. Fault-free runs only: every plan arrives.
+"""
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from dmpc.agents.controller import AgentController
+from dmpc.bus.messages import PlanMessage
+from dmpc.design import Design
+from dmpc.methods import terminal_policy
+from dmpc.plant.barrier import Coordinator, ProtocolOptions, SendRelease, StepCompleted, StepRecord
+from dmpc.plant.dynamics import Plant
+from dmpc.system import CoupledSystem
+from dmpc.trajectories import Plan
+
+RUN_ID = "direct"
+
+
+class DirectLoop:
+    """The distributed closed loop of one method, set up once.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    design : Design
+    protocol : ProtocolOptions
+    method : str
+        A distributed method of :mod:`dmpc.methods`.
+    coupling : {"feedforward", "nominal"}
+    """
+
+    def __init__(self, system: CoupledSystem, design: Design, protocol: ProtocolOptions, method: str,
+                 coupling: str = "feedforward") -> None:
+        self.system = system
+        self.design = design
+        self.protocol = protocol
+        self.policy = terminal_policy(method, system, design)
+        self.controllers = [AgentController(system, design, i, coupling=coupling, method=method)
+                            for i in range(system.M)]
+        self.names = [s.name for s in system.subsystems]
+        self._index = {name: i for i, name in enumerate(self.names)}
+
+    def run(self, steps: int, on_step: Callable[[StepRecord], None], x0: np.ndarray | None = None,
+            stop: Callable[[StepRecord], bool] | None = None) -> int:
+        """Run from x0 (the scenario's by default) for at most ``steps`` steps; returns the steps done.
+
+        ``stop(record)`` returning True ends the run after that step.
+        """
+        options: ProtocolOptions = replace(self.protocol, steps=steps)
+        coordinator = Coordinator(self.system, self.design, Plant(self.system, x0), options, RUN_ID,
+                                  policy=self.policy)
+        archive: dict[tuple[int, int, int], Plan] = {}
+        pending = deque(coordinator.start())
+        done = 0
+        while pending:
+            action = pending.popleft()
+            if isinstance(action, SendRelease):
+                msg = self._answer(action.release, archive)
+                pending.extend(coordinator.on_plan(msg))
+            elif isinstance(action, StepCompleted):
+                on_step(action.record)
+                done += 1
+                if stop is not None and stop(action.record):
+                    break
+        return done
+
+    def _answer(self, release, archive: dict[tuple[int, int, int], Plan]) -> PlanMessage:
+        """Agent ``release.target``'s plan for its release (what AgentNode does over the bus)."""
+        i = self._index[release.target]
+        plans: dict[int, Plan | None] = {}
+        for name, ref in release.assumed.items():
+            j = self._index[name]
+            if ref is None:
+                plans[j] = None
+            elif name in release.provided:
+                plans[j] = Plan(ref[0], ref[1], *release.provided[name])
+            else:
+                plans[j] = archive[(j, *ref)]
+        states = {self._index[name]: x for name, x in release.states.items()}
+        sol = self.controllers[i].solve(release.k, states, release.alpha, release.beta, plans)
+        archive[(i, release.k, release.iteration)] = Plan(release.k, release.iteration, sol.z, sol.v)
+        return PlanMessage(run=RUN_ID, k=release.k, iteration=release.iteration, sender=release.target,
+                           status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
+                           qp_iterations=int(sol.iterations))

@@ -1,0 +1,161 @@
+"""``dmpc compare`` and ``dmpc roa``: their files, their tables, reproducibility, bad input."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dmpc.evaluation.compare import steps_to
+from dmpc.evaluation.roa import region_of_attraction, roa_markdown, sample_states
+from dmpc.scenario import load_scenario
+from tests.helpers.reference import PAPER
+from tests.helpers.cli import call, one_error_line
+
+ENTRY_KEYS = {"run_dir", "closed_loop_cost", "J", "S", "steps_to_1e-3", "feasible", "fallbacks", "solve_time_median_s"}
+
+
+# --------------------------------------------------------------------------- compare
+def test_compare_writes_run_folders_and_comparison_json(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "cmp"
+    code, stdout, _ = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(out), "--steps", "6",
+                           "--methods", "tv-box", "fixed-box", "centralized", "--quiet")
+    assert code == 0
+    data = json.loads((out / "comparison.json").read_text())
+    assert set(data) == {"scenario", "methods"} and data["scenario"] == "paper"
+    assert list(data["methods"]) == ["tv-box", "fixed-box", "centralized"]
+    for method, entry in data["methods"].items():
+        assert set(entry) == ENTRY_KEYS
+        assert entry["run_dir"] == method
+        assert (out / method / "summary.json").exists() and (out / method / "trajectory.npz").exists()
+        assert len(entry["J"]) == 6 and len(entry["S"]) == 7
+        assert entry["feasible"] and entry["fallbacks"] == 0
+        assert entry["steps_to_1e-3"] is None  # not within 6 steps
+    assert "tv-box / centralized" in stdout and "fixed-box" in stdout
+
+
+def test_steps_to_tolerance():
+    x = np.array([[1.0, 2.0], [1e-2, 0.0], [5e-4, -9e-4], [0.0, 0.0]])
+    assert steps_to(x) == 2
+    assert steps_to(x[:2]) is None
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--methods", "tv-box", "nonsense"], "--methods: unknown method 'nonsense'"),
+    (["--methods", "tv-box", "tv-box"], "listed twice"),
+    (["--set", "horizon=0"], "horizon"),
+])
+def test_compare_bad_input_exits_2_with_one_line(tmp_path, monkeypatch, capsys, argv, expected):
+    code, _, err = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(tmp_path / "c"), *argv)
+    assert code == 2
+    assert expected in one_error_line(err)
+
+
+def test_compare_refuses_a_used_folder(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "c"
+    args = ["compare", str(PAPER), "--out", str(out), "--steps", "2", "--methods", "tv-box", "--quiet"]
+    assert call(monkeypatch, capsys, *args)[0] == 0
+    code, _, err = call(monkeypatch, capsys, *args)
+    assert code == 2 and "already holds a comparison" in one_error_line(err)
+
+
+def test_compare_missing_scenario_exits_2(tmp_path, monkeypatch, capsys):
+    code, _, err = call(monkeypatch, capsys, "compare", str(tmp_path / "none.yaml"), "--out", str(tmp_path / "c"))
+    assert code == 2
+    one_error_line(err)
+
+
+# --------------------------------------------------------------------------- roa
+def test_roa_is_reproducible_from_the_seed():
+    scn = load_scenario(PAPER)
+    args = dict(horizons=[3], methods=["tv-box", "tv-box-opt", "centralized"], samples=6)
+    first = region_of_attraction(scn, seed=4, **args)
+    again = region_of_attraction(scn, seed=4, **args)
+    assert first == again
+    assert roa_markdown(first) == roa_markdown(again)
+    assert not np.array_equal(sample_states(8, 6, 2.8, 4), sample_states(8, 6, 2.8, 5))
+
+
+def test_sample_states_are_uniform_in_the_box_and_seeded():
+    X = sample_states(8, 1000, 2.8, 0)
+    assert X.shape == (1000, 8) and np.abs(X).max() <= 2.8
+    assert np.array_equal(X, sample_states(8, 1000, 2.8, 0))
+    assert abs(X.mean()) < 0.1 and X.min() < -2.7 and X.max() > 2.7
+
+
+def test_roa_fractions_are_consistent():
+    data = region_of_attraction(load_scenario(PAPER), [3, 10], ["tv-box", "centralized"], samples=8, seed=0, box=2.0)
+    assert data["box"] == 2.0 and data["samples"] == 8 and data["horizons"] == [3, 10]
+    for per_N in data["methods"].values():
+        for r in per_N.values():
+            assert 0 <= r["always_feasible"] <= min(r["converged"], r["feasible_k0"])
+            assert r["feasible_k0"] == np.mean(r["feasible_k0_samples"])
+    # with the terminal set X^f itself, the centralised QP is feasible from at least as many states
+    assert data["methods"]["centralized"]["3"]["feasible_k0"] >= data["methods"]["tv-box"]["3"]["feasible_k0"]
+
+
+def test_roa_cli_writes_json_plot_and_the_same_table_twice(tmp_path, monkeypatch, capsys):
+    tables = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        code, stdout, _ = call(monkeypatch, capsys, "roa", str(PAPER), "--N", "3", "5", "--samples", "4", "--seed",
+                               "2", "--methods", "tv-box", "centralized", "--out", str(out), "--quiet")
+        assert code == 0
+        assert (out / "roa.json").exists() and (out / "roa.png").stat().st_size > 10_000
+        data = json.loads((out / "roa.json").read_text())
+        assert data["horizons"] == [3, 5] and list(data["methods"]) == ["tv-box", "centralized"]
+        tables.append(stdout.split("results:")[0])
+        assert "feasible at k=0" in stdout
+    assert tables[0] == tables[1]
+    assert json.loads((tmp_path / "a" / "roa.json").read_text()) == json.loads((tmp_path / "b" / "roa.json").read_text())
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--N", "0"], "--N"),
+    (["--N", "3", "3"], "listed twice"),
+    (["--N", "abc"], "abc"),
+    (["--samples", "0"], "--samples"),
+    (["--box", "-1"], "--box"),
+    (["--box", "inf"], "--box"),
+    (["--seed", "-3"], "--seed"),
+    (["--methods", "ellipse"], "unknown method 'ellipse'"),
+])
+def test_roa_bad_input_exits_2_with_one_line(tmp_path, monkeypatch, capsys, argv, expected):
+    code, _, err = call(monkeypatch, capsys, "roa", str(PAPER), "--out", str(tmp_path / "r"), *argv)
+    assert code == 2
+    assert expected in err and "Traceback" not in err
+    if "abc" not in argv:  # click's own usage errors print a usage line too
+        one_error_line(err)
+
+
+# --------------------------------------------------------------------------- --method on simulate and run
+def test_simulate_with_a_method_records_it(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "run"
+    code, _, _ = call(monkeypatch, capsys, "simulate", str(PAPER), "--method", "ellipsoid", "--steps", "3",
+                      "--out", str(out), "--quiet")
+    assert code == 0
+    assert json.loads((out / "summary.json").read_text())["method"] == "ellipsoid"
+    assert "method: ellipsoid" in (out / "scenario.yaml").read_text()
+    assert np.load(out / "trajectory.npz")["r"].shape == (4, 4)
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["simulate", str(PAPER), "--method", "boxes"], "--method: unknown method 'boxes'"),
+    (["run", str(PAPER), "--method", "centralized", "--delay", "5"], "--delay"),
+    (["agent", str(PAPER), "--id", "1", "--set", "options.method=centralized"], "runs no agents"),
+    (["plant", str(PAPER), "--out", "x", "--set", "options.method=centralized"], "runs no agents"),
+])
+def test_method_bad_input_exits_2(monkeypatch, capsys, argv, expected):
+    code, _, err = call(monkeypatch, capsys, *argv)
+    assert code == 2
+    assert expected in one_error_line(err)
+
+
+def test_run_centralized_runs_in_this_process(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "run"
+    code, stdout, err = call(monkeypatch, capsys, "run", str(PAPER), "--method", "centralized", "--steps", "3",
+                             "--out", str(out), "--quiet")
+    assert code == 0 and "no agents" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["method"] == "centralized" and summary["steps"] == 3 and summary["feasible"]
+    assert not (out / "processes.json").exists()

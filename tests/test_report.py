@@ -1,0 +1,309 @@
+"""dmpc report: the five figures of a run folder and of a comparison folder, and bad input."""
+from __future__ import annotations
+
+import json
+import shutil
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dmpc import cli, report
+from tests.helpers.cli import call
+
+FIGURE_FILES = [f"{name}.png" for name in report.FIGURES]
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def simulate(out: Path, overrides: dict | None = None) -> Path:
+    """The records of ``dmpc simulate scenarios/paper.yaml --out out --set KEY=VALUE ...``."""
+    sets = [arg for key, value in (overrides or {}).items() for arg in ("--set", f"{key}={value}")]
+    code = cli.app(["simulate", "scenarios/paper.yaml", "--out", str(out), "--quiet", *sets], standalone_mode=False)
+    assert code in (None, 0) and (out / "trajectory.npz").is_file()
+    return out
+
+
+@pytest.fixture(scope="module")
+def paper_run(tmp_path_factory) -> Path:
+    return simulate(tmp_path_factory.mktemp("report") / "run")
+
+
+def static_level(design: dict) -> float:
+    """The comparator's common level r = min_l 1 / (sum_i ||Omega_{l,i}||_{P_i^-1})^2."""
+    omega = np.asarray(design["omega"])
+    inverses = [np.linalg.inv(np.asarray(P)) for P in design["P"]]
+    sizes = [len(P) for P in design["P"]]
+    starts = np.cumsum([0] + sizes)
+    totals = [sum(np.sqrt(row[a:b] @ Pinv @ row[a:b]) for a, b, Pinv in zip(starts, starts[1:], inverses))
+              for row in omega]
+    return float(min(1.0 / t ** 2 for t in totals))
+
+
+@pytest.fixture(scope="module")
+def comparison_folder(tmp_path_factory, paper_run) -> Path:
+    """tv-box (the paper run), a fake 'ellipsoid' (its copy with levels r) and a 'fixed-box' (N = 6)."""
+    folder = tmp_path_factory.mktemp("compare")
+    shutil.copytree(paper_run, folder / "tv-box", ignore=shutil.ignore_patterns("figures"))
+    shutil.copytree(paper_run, folder / "ellipsoid", ignore=shutil.ignore_patterns("figures"))
+    simulate(folder / "fixed-box", {"horizon": 6})
+    arrays = dict(np.load(folder / "ellipsoid" / "trajectory.npz"))
+    level = static_level(json.loads((folder / "ellipsoid" / "design.json").read_text()))
+    arrays["r"] = np.full((arrays["x"].shape[0], 4), level)
+    np.savez(folder / "ellipsoid" / "trajectory.npz", **arrays)
+    methods = {}
+    for method in ("tv-box", "fixed-box", "ellipsoid"):
+        s = json.loads((folder / method / "summary.json").read_text())
+        methods[method] = {"run_dir": method, "closed_loop_cost": s["closed_loop_cost"], "J": s["J"], "S": s["S"],
+                           "steps_to_1e-3": None, "feasible": s["feasible"], "fallbacks": s["fallbacks"],
+                           "solve_time_median_s": s["solve_time_median_s"]}
+    (folder / "comparison.json").write_text(json.dumps({"scenario": "paper", "methods": methods}))
+    return folder
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """Width and height from the PNG header; fails unless the file is a PNG."""
+    head = path.read_bytes()[:24]
+    assert head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR", f"{path} is not a PNG"
+    return struct.unpack(">II", head[16:24])
+
+
+def assert_five_figures(folder: Path) -> None:
+    assert sorted(p.name for p in folder.glob("*.png")) == sorted(FIGURE_FILES)
+    for name in FIGURE_FILES:
+        width, height = png_size(folder / name)
+        assert 500 <= width <= 2600 and 300 <= height <= 2600, (name, width, height)
+        assert (folder / name).stat().st_size > 15_000, name  # not a blank canvas
+    import matplotlib.image as mpimg
+
+    for name in FIGURE_FILES:
+        pixels = mpimg.imread(folder / name)
+        assert pixels.std() > 0.02, name  # something is drawn
+
+
+# ----------------------------------------------------------------------------- one run
+def test_report_draws_the_five_figures_of_a_run(paper_run, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "figs"
+    code, stdout, err = call(monkeypatch, capsys, "report", str(paper_run), "--out", str(out))
+    assert code == 0, err
+    assert_five_figures(out)
+    assert [Path(line).name for line in stdout.split()] == FIGURE_FILES
+
+
+def test_report_defaults_to_the_figures_subfolder(tmp_path, paper_run):
+    run = tmp_path / "run"
+    shutil.copytree(paper_run, run, ignore=shutil.ignore_patterns("figures"))
+    paths = report.draw(run)
+    assert [p.parent for p in paths] == [run / "figures"] * 5
+    assert_five_figures(run / "figures")
+
+
+def test_figure1_draws_one_box_per_step_where_they_are_recorded(paper_run):
+    run = report.load_run(paper_run)
+    plt = report._pyplot()
+    fig = report._fig1(plt, [report.PlaneSet(run, run.method)], "t", [])
+    try:
+        boxes = [p for p in fig.axes[0].patches if type(p).__name__ == "Rectangle"]
+        assert len(boxes) == run.x.shape[0] == 31
+        first = boxes[0]
+        np.testing.assert_allclose(first.get_xy(), -run.beta[0] * np.ones(2))  # alpha(0) = 0, beta(0) = 0.5
+        np.testing.assert_allclose(first.get_width(), 2 * 0.5)
+        trajectory = fig.axes[0].lines[0].get_xydata()
+        np.testing.assert_allclose(trajectory, run.x[:, :2])
+    finally:
+        plt.close(fig)
+
+
+def test_run_reads_bounds_names_and_dimensions(paper_run):
+    run = report.load_run(paper_run)
+    assert run.names == ["1", "2", "3", "4"] and run.n == [2] * 4 and run.m == [1] * 4
+    assert all(lo.tolist() == [-2.5] and hi.tolist() == [2.5] for lo, hi in zip(run.lower, run.upper))
+    assert run.method == "tv-box" and run.scenario == "paper" and run.r is None
+    assert report._use_log([run.J]) and report._use_log([run.S])  # J falls by > 10 decades
+
+
+def test_without_scenario_yaml_the_design_gives_the_dimensions(tmp_path, paper_run):
+    run_dir = tmp_path / "run"
+    shutil.copytree(paper_run, run_dir, ignore=shutil.ignore_patterns("figures", "scenario.yaml"))
+    run = report.load_run(run_dir)
+    assert run.n == [2] * 4 and run.m == [1] * 4 and run.lower == [None] * 4
+    assert_five_figures(Path(report.draw_run(run_dir)[0]).parent)
+
+
+def test_polytope_input_bounds_are_its_bounding_box():
+    H = np.array([[1.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    lower, upper = report._box_hull(H, np.array([2.0, 1.0, 1.0]))
+    np.testing.assert_allclose(lower, [-1.0, -1.0], atol=1e-9)
+    np.testing.assert_allclose(upper, [3.0, 3.0], atol=1e-9)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_ellipse_outline_is_the_projection_of_the_ellipsoid(n):
+    rng = np.random.default_rng(n)
+    G = rng.normal(size=(n, n))
+    P = G @ G.T + n * np.eye(n)
+    level = 2.0
+    pts = report._ellipse_points(P, level)
+    # the support of {x : x^T P x <= r} in direction d (in the first two coordinates) is sqrt(r d^T P^-1 d)
+    Pinv = np.linalg.inv(P)
+    for angle in np.linspace(0, np.pi, 7):
+        d = np.zeros(n)
+        d[:2] = [np.cos(angle), np.sin(angle)]
+        support = np.sqrt(level * d @ Pinv @ d)
+        assert abs((d[:2] @ pts).max() - support) < 1e-3 * support
+
+
+# ----------------------------------------------------------------------------- bad input
+def _not_a_run(tmp: Path) -> Path:
+    (tmp / "empty").mkdir()
+    return tmp / "empty"
+
+
+def _no_trajectory(tmp: Path, run: Path) -> Path:
+    shutil.copytree(run, tmp / "crashed", ignore=shutil.ignore_patterns("trajectory.npz", "summary.json", "figures"))
+    return tmp / "crashed"
+
+
+def _broken_comparison(tmp: Path) -> Path:
+    (tmp / "cmp").mkdir()
+    (tmp / "cmp" / "comparison.json").write_text("{not json")
+    return tmp / "cmp"
+
+
+def _comparison_without_runs(tmp: Path) -> Path:
+    (tmp / "cmp2").mkdir()
+    (tmp / "cmp2" / "comparison.json").write_text(json.dumps({"methods": {"tv-box": {"run_dir": "missing"}}}))
+    return tmp / "cmp2"
+
+
+def _broken_trajectory(tmp: Path, run: Path) -> Path:
+    shutil.copytree(run, tmp / "garbled", ignore=shutil.ignore_patterns("figures"))
+    (tmp / "garbled" / "trajectory.npz").write_bytes(b"not a zip file")
+    return tmp / "garbled"
+
+
+@pytest.mark.parametrize("make, expected", [
+    (lambda tmp, run: tmp / "does-not-exist", "does not exist"),
+    (lambda tmp, run: Path("scenarios/paper.yaml"), "not a folder"),
+    (lambda tmp, run: _not_a_run(tmp), "not a run folder"),
+    (_no_trajectory, "no trajectory.npz"),
+    (_broken_trajectory, "cannot be read"),
+    (lambda tmp, run: _broken_comparison(tmp), "not valid JSON"),
+    (lambda tmp, run: _comparison_without_runs(tmp), "none of the methods"),
+], ids=["missing", "file", "empty-folder", "no-trajectory", "garbled-npz", "bad-json", "no-method-runs"])
+def test_bad_input_exits_2_with_one_line(tmp_path, paper_run, monkeypatch, capsys, make, expected):
+    code, _, err = call(monkeypatch, capsys, "report", str(make(tmp_path, paper_run)))
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], err
+    assert "Traceback" not in err
+
+
+def test_unwritable_output_exits_2(tmp_path, paper_run, monkeypatch, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    code, _, err = call(monkeypatch, capsys, "report", str(paper_run), "--out", str(blocker))
+    assert code == 2 and err.startswith("error: cannot write")
+
+
+# ----------------------------------------------------------------------------- comparison
+def test_report_draws_the_comparison_figures(comparison_folder, monkeypatch, capsys):
+    code, stdout, err = call(monkeypatch, capsys, "report", str(comparison_folder))
+    assert code == 0, err
+    assert_five_figures(comparison_folder / "figures")
+    assert "not drawn" not in stdout
+
+
+def test_comparison_reads_every_method_and_the_levels(comparison_folder):
+    cmp = report.load_comparison(comparison_folder)
+    assert list(cmp.runs) == ["tv-box", "fixed-box", "ellipsoid"] and not cmp.skipped
+    assert cmp.runs["ellipsoid"].r.shape == (31, 4) and cmp.runs["tv-box"].r is None
+    specs, notes = report._fig1_sets(cmp)
+    assert [(s.method, s.boxes, s.ellipses) for s in specs] == [("tv-box", True, False), ("ellipsoid", False, True)]
+    assert notes == []
+
+
+def test_figure1_of_a_comparison_draws_boxes_and_one_static_ellipse(comparison_folder):
+    cmp = report.load_comparison(comparison_folder)
+    specs, _ = report._fig1_sets(cmp)
+    plt = report._pyplot()
+    fig = report._fig1(plt, specs, "t", [])
+    try:
+        ax = fig.axes[0]
+        assert len([p for p in ax.patches if type(p).__name__ == "Rectangle"]) == 31  # tv-box only
+        dashed = [line for line in ax.lines if line.get_linestyle() == "--" and len(line.get_xdata()) > 100]
+        assert len(dashed) == 1  # a constant level: one ellipse
+        P, r = cmp.runs["ellipsoid"].P[0], cmp.runs["ellipsoid"].r[0, 0]
+        xy = dashed[0].get_xydata()
+        np.testing.assert_allclose(np.einsum("ij,jk,ik->i", xy, P, xy), r, rtol=1e-9)
+    finally:
+        plt.close(fig)
+
+
+def test_comparison_without_levels_says_so_and_still_draws(tmp_path, comparison_folder, monkeypatch, capsys):
+    folder = tmp_path / "cmp"
+    shutil.copytree(comparison_folder, folder, ignore=shutil.ignore_patterns("figures"))
+    arrays = dict(np.load(folder / "ellipsoid" / "trajectory.npz"))
+    del arrays["r"]
+    np.savez(folder / "ellipsoid" / "trajectory.npz", **arrays)
+    _, notes = report._fig1_sets(report.load_comparison(folder))
+    assert notes == ["ellipsoid: no levels r in its trajectory.npz, ellipses not drawn"]
+    code, _, err = call(monkeypatch, capsys, "report", str(folder), "--out", str(tmp_path / "figs"))
+    assert code == 0, err
+    assert_five_figures(tmp_path / "figs")
+
+
+def test_a_method_without_its_run_folder_is_skipped_and_named(tmp_path, comparison_folder, monkeypatch, capsys):
+    folder = tmp_path / "cmp"
+    shutil.copytree(comparison_folder, folder, ignore=shutil.ignore_patterns("figures", "fixed-box"))
+    code, stdout, err = call(monkeypatch, capsys, "report", str(folder))
+    assert code == 0, err
+    assert "not drawn: fixed-box" in stdout
+    assert_five_figures(folder / "figures")
+
+
+# ----------------------------------------------------------------------------- the real methods
+def _methods() -> tuple[str, ...]:
+    try:
+        from dmpc.methods import METHOD_NAMES
+    except ImportError:
+        return ()
+    return METHOD_NAMES
+
+
+@pytest.mark.skipif(not {"ellipsoid", "ellipsoid-adaptive", "centralized"} <= set(_methods()),
+                    reason="the ellipsoid and centralised methods are not available")
+def test_comparison_of_the_real_methods(tmp_path, paper_run, monkeypatch, capsys):
+    """Run folders of the real methods (options.method), gathered by hand into a comparison folder."""
+    shutil.copytree(paper_run, tmp_path / "tv-box", ignore=shutil.ignore_patterns("figures"))
+    methods = {"tv-box": {"run_dir": "tv-box"}}
+    for method in ("ellipsoid-adaptive", "centralized", "ellipsoid"):
+        simulate(tmp_path / method, {"options.method": method})
+        methods[method] = {"run_dir": method}
+    (tmp_path / "comparison.json").write_text(json.dumps({"scenario": "paper", "methods": methods}))
+    cmp = report.load_comparison(tmp_path)
+    assert not cmp.skipped and list(cmp.runs) == ["tv-box", "ellipsoid", "ellipsoid-adaptive", "centralized"]
+    assert cmp.runs["ellipsoid"].r is not None and cmp.runs["ellipsoid"].method == "ellipsoid"
+    specs, notes = report._fig1_sets(cmp)
+    assert [s.method for s in specs] == ["tv-box", "ellipsoid"] and notes == []
+    code, _, err = call(monkeypatch, capsys, "report", str(tmp_path))
+    assert code == 0, err
+    assert_five_figures(tmp_path / "figures")
+    for method in ("ellipsoid-adaptive", "centralized"):  # a single-method run of each draws too
+        assert len(report.draw_run(tmp_path / method)) == 5
+
+
+@pytest.mark.skipif(not hasattr(cli, "compare"), reason="dmpc compare is not available")
+def test_report_on_the_output_of_dmpc_compare(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "compare"
+    code, _, err = call(monkeypatch, capsys, "compare", "scenarios/paper.yaml", "--out", str(out), "--steps", "12",
+                        "--quiet")
+    assert code == 0, err
+    cmp = report.load_comparison(out)
+    assert not cmp.skipped and {"tv-box", "ellipsoid", "centralized"} <= set(cmp.runs)
+    assert cmp.runs["ellipsoid"].r is not None and report._fig1_sets(cmp)[1] == []
+    shutil.rmtree(out / "figures", ignore_errors=True)  # drawn by compare; draw them again here
+    code, stdout, err = call(monkeypatch, capsys, "report", str(out))
+    assert code == 0, err
+    assert "not drawn" not in stdout
+    assert_five_figures(out / "figures")
