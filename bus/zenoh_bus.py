@@ -37,6 +37,15 @@ POLL = 0.1  # longest wait in run(): bounds the delay before Ctrl-C is seen
 CLOSE_TIMEOUT = 1.0
 
 _open_buses: weakref.WeakSet[ZenohBus] = weakref.WeakSet()
+# Sessions whose close did not finish: their closing thread must not outlive a normal interpreter
+# exit (it would be torn down inside Zenoh's native code and abort the process), so the process
+# should end with os._exit once its records are written.
+_left_open: list[zenoh.Session] = []
+
+
+def sessions_left_open() -> bool:
+    """True if a session in this process did not close within CLOSE_TIMEOUT."""
+    return bool(_left_open)
 
 
 @atexit.register
@@ -309,6 +318,7 @@ class ZenohBus(Bus):
             closer.start()
             closer.join(CLOSE_TIMEOUT)
             if closer.is_alive():
+                _left_open.append(self._session)
                 log.info("the Zenoh session did not close within %g s (a peer is not answering); leaving it", CLOSE_TIMEOUT)
         _open_buses.discard(self)
 

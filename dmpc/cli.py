@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import logging
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -688,30 +690,42 @@ def _is_scenario_error(exc: Exception) -> bool:
 def main() -> None:
     """Console entry point: maps expected errors to one line and exit code 2."""
     silence_c_stdout()
+    code = _run_app()
+    zenoh_bus = sys.modules.get("dmpc.bus.zenoh_bus")
+    if zenoh_bus is not None and zenoh_bus.sessions_left_open():
+        # A Zenoh session still closing in the background would abort a normal interpreter exit.
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
+def _run_app() -> int:
+    """Run the CLI; the process's exit code (expected errors reported on one line)."""
     try:
         # without standalone mode, click returns the code of typer.Exit instead of raising it
         code = app(args=_expand_multi_values(sys.argv[1:]), standalone_mode=False)
-        if isinstance(code, int) and code != 0:
-            sys.exit(code)
+        return code if isinstance(code, int) else 0
     except (DesignError, RunFolderError, InputError) as exc:
         error_line(str(exc))
-        sys.exit(EXIT_INPUT)
+        return EXIT_INPUT
     except click.exceptions.Exit as exc:
-        sys.exit(exc.exit_code)
+        return exc.exit_code
     except KeyboardInterrupt:
         error_line("interrupted")
-        sys.exit(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
     except click.exceptions.Abort:
         error_line("aborted")
-        sys.exit(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
     except click.ClickException as exc:  # usage errors: unknown option, missing argument, bad value
         exc.show()
-        sys.exit(exc.exit_code)
+        return exc.exit_code
     except Exception as exc:
         if not _is_scenario_error(exc):
             raise
         error_line(str(exc))
-        sys.exit(EXIT_INPUT)
+        return EXIT_INPUT
 
 
 if __name__ == "__main__":

@@ -1,9 +1,18 @@
-"""Fixtures shared by the end-to-end tests."""
+"""Fixtures shared by the tests, and the Hypothesis profile for CI."""
 from __future__ import annotations
 
+import os
+
 import pytest
+from hypothesis import settings
 
 from tests.e2e_helpers import Processes
+
+# CI replays the same examples on every run (a failure there is reproducible from the log);
+# local runs keep exploring new ones.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 
 @pytest.fixture

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from dmpc.design import DesignError
@@ -127,6 +127,7 @@ alphas = st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=8, max_size=8)
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(direction=alphas, depth=st.floats(0.0, 0.98))
+@example(direction=np.array([0.0, 0.0, 0.0, 0.03125, 0.0, 0.0, 0.0, 1.0]), depth=1e-6)  # needs a tight LP tolerance
 def test_sigma_equals_the_lp_and_the_cube_fits(paper, direction, depth):
     """sigma(alpha) = the LP optimum; the 256 cube vertices are inside X^f; a larger cube is not."""
     terminal = paper.design.terminal

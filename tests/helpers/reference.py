@@ -74,7 +74,10 @@ def lp_max(c: np.ndarray, A_ub: np.ndarray, b_ub: np.ndarray) -> float:
 def sigma_lp(omega: np.ndarray, alpha: np.ndarray) -> float:
     """max theta s.t. Omega_l alpha + theta ||Omega_l||_1 <= 1 for every row l (an LP in theta)."""
     norms = np.abs(omega).sum(axis=1)
-    res = linprog([-1.0], A_ub=norms[:, None], b_ub=1.0 - omega @ alpha, bounds=[(None, None)], method="highs")
+    # HiGHS's default feasibility tolerance (1e-7) is looser than the 1e-9 the tests compare at.
+    tight = {"primal_feasibility_tolerance": 1e-10, "dual_feasibility_tolerance": 1e-10}
+    res = linprog([-1.0], A_ub=norms[:, None], b_ub=1.0 - omega @ alpha, bounds=[(None, None)], method="highs",
+                  options=tight)
     assert res.status == 0, res.message
     return float(res.x[0])
 
