@@ -325,7 +325,7 @@ def router(listen: ListenOpt = None,
     """Host a Zenoh router in this process (no external binary) until Ctrl-C."""
     import time
 
-    from dmpc.bus.session import BusError, session_config
+    from dmpc.bus.session import session_config
     from dmpc.runtime.signals import sigterm_as_interrupt
 
     sigterm_as_interrupt()

@@ -393,7 +393,6 @@ class Coordinator:
 
     def _candidate(self, i: int, last: Plan | None, x_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The shifted candidate plan of agent i at this step, shapes (N+1, n_i), (N, m_i)."""
-        sub = self.system.subsystems[i]
         if last is None:
             z = [x_i]
             for _ in range(self.N):

@@ -76,12 +76,18 @@ class PlantNode:
     def _reject(self, sender: str, why: str) -> None:
         self.rejects(sender, why)
 
-    def _on_ready(self, key: str, payload: bytes) -> None:
-        name = keys.last_chunk(key)
+    def _decoded(self, name: str, payload: bytes) -> object | None:
+        """The message in ``payload``, or None (counted against ``name``) if it does not decode."""
         try:
-            msg = decode(payload)
+            return decode(payload)
         except DecodeError as exc:
             self._reject(name, str(exc))
+            return None
+
+    def _on_ready(self, key: str, payload: bytes) -> None:
+        name = keys.last_chunk(key)
+        msg = self._decoded(name, payload)
+        if msg is None:
             return
         if not isinstance(msg, Ready) or msg.run != self.run_id or msg.sender != name or name not in self.names:
             self._reject(name, "invalid ready message")
@@ -118,10 +124,8 @@ class PlantNode:
 
     def _on_plan(self, key: str, payload: bytes) -> None:
         name = keys.last_chunk(key)
-        try:
-            msg = decode(payload)
-        except DecodeError as exc:
-            self._reject(name, str(exc))
+        msg = self._decoded(name, payload)
+        if msg is None:
             return
         if not isinstance(msg, PlanMessage) or msg.sender != name:
             self._reject(name, "not a plan from its key's agent")

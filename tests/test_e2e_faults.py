@@ -23,19 +23,6 @@ DT = 0.1  # realtime step period of the manual runs
 CONVERGED = 1e-5  # ||x(K)||_inf at the end; see test_loss_in_realtime_falls_back_and_converges
 
 
-@pytest.fixture
-def procs(tmp_path):
-    p = Processes(tmp_path)
-    yield p
-    for proc in p.procs:  # a stopped process must be resumed or killed, never left behind
-        if proc.poll() is None:
-            try:
-                os.killpg(proc.pid, signal.SIGCONT)
-            except ProcessLookupError:
-                pass
-    p.cleanup()
-
-
 @pytest.fixture(scope="module")
 def paper_simulated(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "paper"

@@ -7,8 +7,6 @@ import hashlib
 import json
 from dataclasses import dataclass
 
-import numpy as np
-
 from dmpc.bus.faults import FaultPlan, LinkFault
 from dmpc.design import Design, design_from_json, design_system
 from dmpc.plant.barrier import ProtocolOptions
