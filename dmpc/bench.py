@@ -24,7 +24,24 @@ from dmpc.runtime.launcher import default_topology
 
 def machine() -> dict:
     return {"machine": platform.machine(), "cores": psutil.cpu_count(logical=True),
-            "memory_gib": round(psutil.virtual_memory().total / 2**30, 1), "python": platform.python_version()}
+            "memory_gib": round(psutil.virtual_memory().total / 2**30, 1), "python": platform.python_version(),
+            "calibration_ms": calibration_ms()}
+
+
+def calibration_ms(repeat: int = 7) -> float:
+    """Best time of a fixed single-threaded Python workload (10^6 additions), in ms.
+
+    Shared or throttled virtual machines run at different speeds from one hour to the next;
+    figures measured at different times compare only alongside this one.
+    """
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        total = 0
+        for i in range(1_000_000):
+            total += i
+        best = min(best, time.perf_counter() - t0)
+    return float(best * 1e3)
 
 
 def chain_overrides(M: int, steps: int, horizon: int | None = None) -> tuple[str, dict]:

@@ -78,6 +78,9 @@ def markdown(results: dict, command: str) -> str:
     lines = ["# Benchmarks", "",
              f"Measured on {m['machine']}, {m['cores']} cores, {m['memory_gib']} GiB, Python {m['python']}; "
              f"{results['seconds']:.0f} s in all. Reproduce with `{command}`.", "",
+             f"Speed of this machine at the time: {m.get('calibration_ms', float('nan')):.1f} ms for 10^6 Python "
+             "additions (best of 7). Shared virtual machines vary from hour to hour; compare runs only with this "
+             "figure alongside.", "",
              "## Local QP (paper's subsystem, one agent's closed-loop sequence replayed, vector updates included)", "",
              "| N | solves | median (us) | p99 (us) |", "|---|---|---|---|"]
     lines += [f"| {q['N']} | {q['solves']} | {q['us_p50']:.1f} | {q['us_p99']:.1f} |" for q in results["qp"]]

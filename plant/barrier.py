@@ -11,6 +11,7 @@ Inputs are method calls (``start``, ``on_plan``, ``on_deadline``, ``on_agent_los
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,7 +20,7 @@ from dmpc.bus.messages import PlanMessage, Release
 from dmpc.design import Design
 from dmpc.mpc_qp import QPStatus, plan_cost
 from dmpc.plant.dynamics import Plant
-from dmpc.security.rejects import out_of_range
+from dmpc.security.rejects import MAX_MAGNITUDE, magnitude
 from dmpc.system import CoupledSystem, project_onto
 from dmpc.trajectories import Plan, continued, shifted_input
 
@@ -232,9 +233,10 @@ class Coordinator:
         if msg.status not in KNOWN_STATUSES:
             return "unknown status"
         if msg.status in SOLVED_STATUSES:
-            if not (np.all(np.isfinite(msg.z)) and np.all(np.isfinite(msg.v)) and np.isfinite(msg.cost)):
+            size = magnitude(msg.z, msg.v, msg.cost)
+            if not math.isfinite(size):
                 return "non-finite plan"
-            if out_of_range(msg.z, msg.v, msg.cost):
+            if size > MAX_MAGNITUDE:
                 return "out of range"
         return None
 

@@ -18,12 +18,15 @@ import yaml
 import zenoh
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from dmpc.bus.session import TlsFiles, session_config
 from dmpc.security.acl import access_control, read_acl, scenario_access_control
 from dmpc.security.certs import make_certificates, make_run_security
 from dmpc.security.files import node_security, role_names, tls_files
-from dmpc.security.rejects import UNKNOWN, Rejections
+from dmpc.security.rejects import MAX_MAGNITUDE, UNKNOWN, Rejections, magnitude, out_of_range
 from tests.helpers.cli import call, one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -437,3 +440,21 @@ def test_records_hold_no_pickles(tmp_path, prepared):
         assert data.files and all(data[name].dtype != object for name in data.files)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["steps"] == prepared.protocol.steps
+
+
+# ---------------------------------------------------------------- magnitude of a received plan
+
+_entries = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@given(z=arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 3)), elements=_entries),
+       v=arrays(np.float64, st.integers(0, 5), elements=_entries), cost=_entries)
+def test_magnitude_is_the_largest_absolute_entry_and_nan_wins(z, v, cost):
+    everything = np.concatenate([z.ravel(), v.ravel(), [cost]])
+    got = magnitude(z, v, cost)
+    if np.isnan(everything).any():
+        assert np.isnan(got)
+        assert out_of_range(z, v, cost)
+    else:
+        assert got == np.max(np.abs(everything))
+        assert out_of_range(z, v, cost) == (got > MAX_MAGNITUDE)

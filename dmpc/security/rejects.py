@@ -8,6 +8,7 @@ so the counts stay bounded whatever arrives. Each sender gets at most one log li
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Iterable
 
 UNKNOWN = "(unknown)"
@@ -92,8 +93,26 @@ class Rejections:
 MAX_MAGNITUDE = 1e12
 
 
-def out_of_range(*arrays) -> bool:
-    """True if any entry of the arrays (or scalars) exceeds ``MAX_MAGNITUDE`` in size."""
-    import numpy as np
+def magnitude(*values) -> float:
+    """The largest absolute entry of the arrays and scalars (0.0 if none); NaN if any entry is NaN.
 
-    return any(np.size(a) and float(np.max(np.abs(a))) > MAX_MAGNITUDE for a in arrays)
+    Runs on every received plan: array methods rather than numpy's functions, whose dispatch
+    costs more than the reduction on arrays this small.
+    """
+    top = 0.0
+    for a in values:
+        if hasattr(a, "max"):
+            if a.size == 0:
+                continue
+            m = max(float(a.max()), -float(a.min()))  # a NaN entry makes both NaN
+        else:
+            m = abs(float(a))
+        if m != m:
+            return math.nan
+        top = max(top, m)
+    return top
+
+
+def out_of_range(*values) -> bool:
+    """True if an entry of the arrays (or scalars) exceeds ``MAX_MAGNITUDE`` in size, or is NaN."""
+    return not magnitude(*values) <= MAX_MAGNITUDE

@@ -1,0 +1,54 @@
+"""The benchmark report: every measured figure lands in RESULTS.md, failures with their reason."""
+from __future__ import annotations
+
+import json
+
+from dmpc.bench import calibration_ms
+from dmpc.bench_report import markdown
+
+
+def _results() -> dict:
+    done = {"M": 4, "completed": True, "topology": "mesh", "steps": 100, "wall_s": 5.6, "step_ms_p50": 4.48,
+            "step_ms_p99": 8.52, "step0_ms": 94.0, "bus_ms_p50": 4.09, "bus_share_p50": 0.962,
+            "rss_mb_per_agent": 74.8, "pss_mb_per_agent": 45.1, "rss_mb_plant": 86.0, "rss_mb_total": 385.0,
+            "pss_mb_total": 236.0, "closed_loop_cost": 102.04, "feasible": True}
+    failed = {"M": 64, "completed": False, "topology": "mesh",
+              "reason": "error: agent-30 exited with code -6 | see\nits log"}
+    loop = {"step_ms_p50": 4.39, "step_ms_p99": 4.7, "closed_loop_cost": 102.044}
+    return {
+        "machine": {"machine": "x86_64", "cores": 2, "memory_gib": 23.5, "python": "3.11.7", "calibration_ms": 37.3},
+        "quick": False, "seconds": 512.0,
+        "qp": [{"N": 10, "solves": 940, "us_p50": 49.4, "us_p99": 138.5}],
+        "runtime": [done, failed],
+        "inprocess": [{"M": 4, **loop}, {"M": 64, **loop}],
+        "central_osqp": [{"M": 4, **loop, "closed_loop_cost": 101.79}, {"M": 64, **loop}],
+        "central_cvxpy": [{"M": 4, **loop, "step_ms_p50": 3.38}, {"M": 64, **loop}],
+        "design": [{"M": 4, "lmi_s": 0.08, "terminal_set_s": 0.09, "omega_rows": 24, "t_star": 2}],
+        "headline": {"qp_solve_us_p50": 49.4, "step_ms_p50_m4": 4.48, "step_ms_p99_m4": 8.52,
+                     "rss_mb_per_agent": 74.8, "max_agents_run": 4},
+    }
+
+
+def test_every_figure_and_the_machine_are_in_the_report():
+    text = markdown(_results(), "dmpc bench --write benchmarks/RESULTS.md")
+    assert "2 cores, 23.5 GiB" in text and "37.3 ms for 10^6 Python additions" in text
+    assert "`dmpc bench --write benchmarks/RESULTS.md`" in text
+    assert "| 10 | 940 | 49.4 | 138.5 |" in text
+    assert "| 4 | mesh | 100 | 6 | 4.48 | 8.52 | 96% | 74.8 | 45.1 | 385 | 236 |" in text
+    # the side-by-side ratio multi-process / CVXPY = 4.48 / 3.38
+    assert "| 1.33 |" in text
+    headline = json.loads(text.split("```json")[1].split("```")[0])
+    assert headline["max_agents_run"] == 4
+
+
+def test_a_run_that_did_not_complete_is_a_row_with_its_reason_on_one_line():
+    text = markdown(_results(), "dmpc bench")
+    row = next(line for line in text.splitlines() if line.startswith("| 64 | mesh |"))
+    assert "did not complete: error: agent-30 exited with code -6 / see its log" in row
+    # the side-by-side row of M = 64 has no multi-process figure rather than a made-up one
+    side = [line for line in text.splitlines() if line.startswith("| 64 | - |")]
+    assert len(side) == 1
+
+
+def test_calibration_is_a_positive_time():
+    assert 0.0 < calibration_ms(repeat=1) < 10_000.0
