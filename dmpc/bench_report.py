@@ -65,6 +65,45 @@ def headline(results: dict) -> dict:
     }
 
 
+def targets(results: dict) -> list[tuple[str, str, str]]:
+    """(target, measured, met) for each performance target dmpc is held to; "-" where not measured."""
+    rows: list[tuple[str, str, str]] = []
+
+    def row(target: str, measured: str, met: bool | None) -> None:
+        rows.append((target, measured, "-" if met is None else ("yes" if met else "no")))
+
+    qp10 = next((q for q in results["qp"] if q["N"] == 10), None)
+    row("local QP, N = 10: median <= 60 us", f"{qp10['us_p50']:.1f} us" if qp10 else "-",
+        qp10["us_p50"] <= 60 if qp10 else None)
+    m4 = next((r for r in results["runtime"] if r["M"] == 4 and r.get("completed")), None)
+    row("M = 4 lockstep step: median <= 1 ms", f"{m4['step_ms_p50']:.2f} ms" if m4 else "-",
+        m4["step_ms_p50"] <= 1 if m4 else None)
+    row("M = 4 lockstep step: p99 <= 3 ms", f"{m4['step_ms_p99']:.2f} ms" if m4 else "-",
+        m4["step_ms_p99"] <= 3 if m4 else None)
+    by_m = {r["M"]: r for r in results["runtime"]}
+    for M, what in ((64, "runs to completion"), (128, "attempted")):
+        r = by_m.get(M)
+        if r is None:
+            row(f"M = {M} {what}", "not run", None)
+        else:
+            done = bool(r.get("completed"))
+            row(f"M = {M} {what}", f"{'completed' if done else 'did not complete'} ({r.get('topology', '-')})",
+                done if M == 64 else True)
+    rss = [(r["M"], r["rss_mb_per_agent"]) for r in results["runtime"] if r.get("rss_mb_per_agent")]
+    over = [M for M, mb in rss if mb > 80]
+    row("resident memory per agent <= 80 MB",
+        ", ".join(f"{mb:.0f} MB at M = {M}" for M, mb in rss) or "-", (not over) if rss else None)
+    multi = {r["M"]: r["step_ms_p50"] for r in results["runtime"] if r.get("completed")}
+    for key, label, from_m in (("central_cvxpy", "the centralised CVXPY step, every M", 0),
+                               ("central_osqp", "the centralised OSQP step, M >= 32", 32)):
+        pairs = [(c["M"], multi[c["M"]], c["step_ms_p50"]) for c in results[key]
+                 if c["M"] in multi and c["M"] >= from_m]
+        row(f"DMPC multi-process step faster than {label}",
+            ", ".join(f"{mp / ref:.2g}x at M = {M}" for M, mp, ref in pairs) or "-",
+            all(mp < ref for _, mp, ref in pairs) if pairs else None)
+    return rows
+
+
 def _fmt(value, digits: int = 3) -> str:
     if value is None:
         return "-"
@@ -117,6 +156,9 @@ def markdown(results: dict, command: str) -> str:
               "| M | LMI (s) | X^f (s) | rows of Omega | t* |", "|---|---|---|---|---|"]
     lines += [f"| {d['M']} | {d['lmi_s']:.2f} | {d['terminal_set_s']:.2f} | {d['omega_rows']} | {d['t_star']} |"
               for d in results["design"]]
+    lines += ["", "## Targets", "", "Step ratios are DMPC multi-process time over the reference's (below 1 is faster).", "",
+              "| target | measured | met |", "|---|---|---|"]
+    lines += [f"| {t} | {m} | {ok} |" for t, m, ok in targets(results)]
     lines += ["", "## Headline", "", "```json", json.dumps(results["headline"], indent=2), "```", ""]
     return "\n".join(lines)
 

@@ -498,7 +498,7 @@ def run(scenario: ScenarioArg,
 @app.command()
 def bench(quick: Annotated[bool, typer.Option("--quick", help="A subset that runs in under a minute.")] = False,
           as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON.")] = False,
-          write: Annotated[Optional[Path], typer.Option("--write", help="Write the Markdown report here (with figures beside it).")] = None) -> None:
+          write: Annotated[Optional[Path], typer.Option("--write", help="Write the Markdown report here (figures and the raw results as .json beside it).")] = None) -> None:
     """Measure QP, multi-process step time, memory, design time and baselines on this machine."""
     from dmpc.bench_report import markdown, plot, run_all
 
@@ -513,6 +513,7 @@ def bench(quick: Annotated[bool, typer.Option("--quick", help="A subset that run
         text = markdown(results, command)
         text += "\n" + "\n".join(f"![{p.stem}](figures/{p.name})" for p in figures) + "\n"
         write.write_text(text)
+        write.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
     if as_json:
         print(json.dumps({**results["headline"], "results": results}, indent=2))
     else:

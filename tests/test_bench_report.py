@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 
 from dmpc.bench import calibration_ms
-from dmpc.bench_report import markdown
+from dmpc.bench_report import markdown, targets
 
 
 def _results() -> dict:
@@ -52,3 +52,17 @@ def test_a_run_that_did_not_complete_is_a_row_with_its_reason_on_one_line():
 
 def test_calibration_is_a_positive_time():
     assert 0.0 < calibration_ms(repeat=1) < 10_000.0
+
+
+def test_targets_say_which_are_met_from_the_figures():
+    rows = {target: (measured, met) for target, measured, met in
+            targets(_results())}
+    assert rows["local QP, N = 10: median <= 60 us"] == ("49.4 us", "yes")
+    assert rows["M = 4 lockstep step: median <= 1 ms"] == ("4.48 ms", "no")
+    assert rows["M = 4 lockstep step: p99 <= 3 ms"] == ("8.52 ms", "no")
+    assert rows["M = 64 runs to completion"] == ("did not complete (mesh)", "no")
+    assert rows["M = 128 attempted"] == ("not run", "-")
+    assert rows["resident memory per agent <= 80 MB"] == ("75 MB at M = 4", "yes")
+    assert rows["DMPC multi-process step faster than the centralised CVXPY step, every M"] == ("1.3x at M = 4", "no")
+    # no M >= 32 completed: nothing to compare, so not claimed either way
+    assert rows["DMPC multi-process step faster than the centralised OSQP step, M >= 32"] == ("-", "-")
