@@ -5,6 +5,7 @@ import copy
 from pathlib import Path
 from typing import get_args
 
+import jsonschema
 import numpy as np
 import pytest
 import yaml
@@ -193,7 +194,6 @@ def test_json_schema_describes_and_validates_shipped_files():
     assert schema["additionalProperties"] is False
     assert set(schema["properties"]) >= {"name", "subsystems", "family", "couplings", "graph", "horizon",
                                          "steps", "seed", "design", "terminal", "options", "faults"}
-    jsonschema = pytest.importorskip("jsonschema")
     for path in SCENARIOS:
         jsonschema.validate(yaml.safe_load(path.read_text()), schema)
 
