@@ -616,7 +616,7 @@ def roa(scenario: ScenarioArg,
     from dmpc.console import stderr_console
     from dmpc.evaluation.roa import (ROA_FILE, ROA_LEGEND, ROA_PLOT, plot_roa, region_of_attraction, roa_header,
                                      roa_rows)
-    from dmpc.records.run_folder import write_json
+    from dmpc.records.run_folder import claim_folder, write_json
 
     if not horizons or any(N < 1 for N in horizons):
         raise InputError(f"--N: horizons must be integers >= 1, got {' '.join(map(str, horizons)) or 'none'}")
@@ -631,12 +631,7 @@ def roa(scenario: ScenarioArg,
     methods = _checked_methods(methods)
     scn = _load(scenario, set_)
     out = out or _default_out(None, f"roa-{scn.name}")
-    if (out / ROA_FILE).exists():
-        raise InputError(f"--out: {out} already holds {ROA_FILE}: choose another folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"--out: cannot create {out}: {exc.strerror}") from None
+    claim_folder(out, ROA_FILE, "a region-of-attraction table")
     progress = None
     advance = None
     if not quiet:

@@ -110,6 +110,16 @@ def test_roa_cli_writes_json_plot_and_the_same_table_twice(tmp_path, monkeypatch
     assert json.loads((tmp_path / "a" / "roa.json").read_text()) == json.loads((tmp_path / "b" / "roa.json").read_text())
 
 
+def test_roa_refuses_a_folder_that_holds_a_table_and_keeps_it(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "roa.json").write_text('{"kept": true}')
+    code, _, err = call(monkeypatch, capsys, "roa", str(PAPER), "--N", "3", "--samples", "2", "--out", str(out),
+                        "--quiet")
+    assert code == 2 and "already holds a region-of-attraction table (roa.json exists)" in one_error_line(err)
+    assert json.loads((out / "roa.json").read_text()) == {"kept": True}
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["--N", "0"], "--N"),
     (["--N", "3", "3"], "listed twice"),

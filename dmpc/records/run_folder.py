@@ -57,6 +57,22 @@ def write_json(path: Path, data) -> None:
     os.replace(tmp, path)
 
 
+def claim_folder(path: Path, marker: str, holds: str) -> None:
+    """Create ``path`` for new output, refusing one that already holds ``marker`` (what it is: ``holds``).
+
+    Raises
+    ------
+    RunFolderError
+        ``path / marker`` exists, or ``path`` cannot be created.
+    """
+    if (path / marker).exists():
+        raise RunFolderError(f"{path} already holds {holds} ({marker} exists): choose another --out")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RunFolderError(f"cannot create folder {path}: {exc.strerror}") from None
+
+
 class RunFolder:
     """Writes one run's records.
 
@@ -69,12 +85,7 @@ class RunFolder:
 
     def __init__(self, path, system: CoupledSystem) -> None:
         self.path = Path(path)
-        if (self.path / STEP_LOG).exists():
-            raise RunFolderError(f"{self.path} already holds a run ({STEP_LOG} exists): choose another --out")
-        try:
-            self.path.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise RunFolderError(f"cannot create run folder {self.path}: {exc.strerror}") from None
+        claim_folder(self.path, STEP_LOG, "a run")
         self.system = system
         self.records: list[StepRecord] = []
         self._log = open(self.path / STEP_LOG, "a", encoding="utf-8")

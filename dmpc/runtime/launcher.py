@@ -21,7 +21,7 @@ from pathlib import Path
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from dmpc.console import stderr_console
-from dmpc.records.run_folder import STEP_LOG, RunFolderError, write_json
+from dmpc.records.run_folder import STEP_LOG, claim_folder, write_json
 from dmpc.runtime.bundle import write_bundle
 from dmpc.runtime.setup import Prepared
 from dmpc.scenario import dump_resolved
@@ -71,12 +71,7 @@ def free_port() -> int:
 
 def prepare_run_folder(out: Path, prepared: Prepared) -> tuple[Path, Path]:
     """Write the resolved scenario and the design the children load; returns their paths."""
-    if (out / STEP_LOG).exists():
-        raise RunFolderError(f"{out} already holds a run ({STEP_LOG} exists): choose another --out")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise RunFolderError(f"cannot create run folder {out}: {exc.strerror}") from None
+    claim_folder(out, STEP_LOG, "a run")
     scenario_path = out / "scenario.yaml"
     scenario_path.write_text(dump_resolved(prepared.scenario))
     design_path = out / "design.json"
