@@ -6,7 +6,7 @@ import os
 import pytest
 from hypothesis import settings
 
-from tests.e2e_helpers import Processes
+from tests.e2e_helpers import Processes, simulate_paper
 
 # CI replays the same examples on every run (a failure there is reproducible from the log);
 # local runs keep exploring new ones.
@@ -21,3 +21,9 @@ def procs(tmp_path):
     p = Processes(tmp_path)
     yield p
     p.cleanup()
+
+
+@pytest.fixture(scope="module")
+def paper_simulated(tmp_path_factory):
+    """Run folder of ``dmpc simulate scenarios/paper.yaml`` (the in-process reference)."""
+    return simulate_paper(tmp_path_factory.mktemp("sim") / "paper")

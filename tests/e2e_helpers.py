@@ -68,6 +68,13 @@ def run_cli(*args: str, timeout: float = 240, cwd: Path = ROOT) -> subprocess.Co
                           stdin=subprocess.DEVNULL)
 
 
+def simulate_paper(out: Path, *args: str) -> Path:
+    """``dmpc simulate`` of the paper's example into ``out`` (extra CLI ``args``), the reference of the e2e runs."""
+    res = run_cli("simulate", "scenarios/paper.yaml", "--out", str(out), "--quiet", *args)
+    assert res.returncode == 0, res.stderr
+    return out
+
+
 def wait_for(predicate, timeout: float, interval: float = 0.05) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.e2e_helpers import Processes, free_port, pid_alive, run_cli, step_lines, wait_for
+from tests.e2e_helpers import Processes, free_port, pid_alive, run_cli, simulate_paper, step_lines, wait_for
 
 pytestmark = pytest.mark.e2e
 
@@ -25,9 +25,7 @@ CONVERGED = 1e-5  # ||x(K)||_inf at the end; see test_loss_in_realtime_falls_bac
 
 @pytest.fixture(scope="module")
 def paper_simulated(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sim") / "paper"
-    res = run_cli("simulate", "scenarios/paper.yaml", "--out", str(out), "--quiet", "--steps", "60")
-    assert res.returncode == 0, res.stderr
+    out = simulate_paper(tmp_path_factory.mktemp("sim") / "paper", "--steps", "60")
     return np.load(out / "trajectory.npz")
 
 

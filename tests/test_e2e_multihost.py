@@ -37,7 +37,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.e2e_helpers import ROOT, Processes, max_abs_diff, run_cli, step_lines, wait_for
+from tests.e2e_helpers import ROOT, Processes, max_abs_diff, step_lines, wait_for
 
 pytestmark = pytest.mark.e2e
 
@@ -174,14 +174,6 @@ def procs(tmp_path, lab):
     p.cleanup()
 
 
-@pytest.fixture(scope="module")
-def simulated(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sim") / "paper"
-    res = run_cli("simulate", "scenarios/paper.yaml", "--out", str(out), "--quiet")
-    assert res.returncode == 0, res.stderr
-    return out
-
-
 def test_namespaces_are_isolated(lab):
     """Each host sees only the lab's subnet (no default route) and the bridge holds only the lab's ports."""
     for role in lab.hosts:
@@ -231,7 +223,7 @@ DEPLOYMENTS = {
 
 
 @pytest.mark.parametrize("deployment", list(DEPLOYMENTS))
-def test_paper_across_namespaces_equals_simulate(procs, lab, simulated, tmp_path, deployment):
+def test_paper_across_namespaces_equals_simulate(procs, lab, paper_simulated, tmp_path, deployment):
     """The paper's example with every role on its own host; as docs/deploy.md describes it."""
     with_router, plant_net, agent_net = DEPLOYMENTS[deployment]
     router = f"tcp/{lab.hosts['router']}:{ROUTER_PORT}"
@@ -239,7 +231,7 @@ def test_paper_across_namespaces_equals_simulate(procs, lab, simulated, tmp_path
     plant_net = [endpoints.get(a, a) for a in plant_net]
     agent_net = [endpoints.get(a, a) for a in agent_net]
     out = tmp_path / "out"
-    common = ["--run-id", f"netns-{deployment}", "--design", str(simulated / "design.json"),
+    common = ["--run-id", f"netns-{deployment}", "--design", str(paper_simulated / "design.json"),
               "--startup-timeout", "60"]
 
     t0 = time.monotonic()
@@ -267,7 +259,7 @@ def test_paper_across_namespaces_equals_simulate(procs, lab, simulated, tmp_path
     elapsed = time.monotonic() - t0
     assert plant.returncode == 0, procs.log(plant)
     assert all(a.returncode == 0 for a in agents), [procs.log(a) for a in agents]
-    assert max_abs_diff(simulated, out) <= 1e-9
+    assert max_abs_diff(paper_simulated, out) <= 1e-9
 
     others = {lab.hosts[role] for role in lab.hosts if role not in ("router",)}
     for name, peers in linked.items():

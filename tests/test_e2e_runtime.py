@@ -16,14 +16,6 @@ from tests.e2e_helpers import (DMPC, ROOT, free_port, max_abs_diff, pid_alive, r
 pytestmark = pytest.mark.e2e
 
 
-@pytest.fixture(scope="module")
-def paper_simulated(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sim") / "paper"
-    res = run_cli("simulate", "scenarios/paper.yaml", "--out", str(out), "--quiet")
-    assert res.returncode == 0, res.stderr
-    return out
-
-
 @pytest.mark.parametrize("scenario, extra", [("scenarios/paper.yaml", []),
                                              ("scenarios/chain.yaml", ["--set", "family.M=8"])])
 def test_run_equals_simulate(tmp_path, scenario, extra):
