@@ -180,9 +180,6 @@ class AgentNode:
         if self._ready_timer is not None:
             self._ready_timer.cancel()
             self._ready_timer = None
-        if self.rejects.total or self.duplicates:
-            log.warning("%s; %d duplicates ignored", self.rejects.summary() or f"agent {self.name}: dropped nothing",
-                        self.duplicates)
 
     def _check_stop(self, msg: Stop) -> str | None:
         if msg.sender != PLANT:

@@ -67,8 +67,7 @@ def run_agent(prepared: Prepared, name: str, bus: Bus, run_id: str, startup_time
     except KeyboardInterrupt:
         code, message = EXIT_INTERRUPTED, f"agent {name}: interrupted after {node.solves} solves"
     if node.rejects.total:
-        per = ", ".join(f"{sender}: {n}" for sender, n in sorted(node.rejects.counts.items()))
-        message += f"; dropped {node.rejects.total} invalid messages ({per})"
+        message += f"; {node.rejects.counts_line()}"
     if node.duplicates:
         message += f"; {node.duplicates} duplicates ignored"
     return AgentOutcome(code, message, node.report())

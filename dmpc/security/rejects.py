@@ -80,12 +80,17 @@ class Rejections:
     def total(self) -> int:
         return sum(self.counts.values())
 
-    def summary(self) -> str:
-        """One line: the total and the counts per sender, or '' if nothing was dropped."""
+    def counts_line(self) -> str:
+        """'dropped N invalid messages (per sender)', or '' if nothing was dropped."""
         if not self.counts:
             return ""
         per = ", ".join(f"{s}: {n}" for s, n in sorted(self.counts.items()))
-        return f"{self.who}: dropped {self.total} invalid messages ({per})"
+        return f"dropped {self.total} invalid messages ({per})"
+
+    def summary(self) -> str:
+        """:meth:`counts_line` after who dropped them, or '' if nothing was dropped."""
+        line = self.counts_line()
+        return f"{self.who}: {line}" if line else ""
 
 
 # No state, input or cost of a plan the QP could produce comes near this; beyond it a plan
