@@ -80,6 +80,24 @@ def k_rollout(x: np.ndarray, N: int, Gamma: np.ndarray, K: np.ndarray) -> tuple[
     return z, (K @ z.T).T
 
 
+def candidate_plan(plan: Plan | None, k: int, x_now: np.ndarray | None, N: int, Gamma: np.ndarray,
+                   K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate plan at step k: the plan made at k' <= k shifted to k and continued with the
+    terminal controller, or without a plan the K-rollout from x_now (needed only then).
+
+    Returns
+    -------
+    z : ndarray, shape (N + 1, n)
+    v : ndarray, shape (N, m)
+    """
+    if plan is None:
+        z, v = k_rollout(x_now, N + 1, Gamma, K)
+        return z, v[:N]
+    shift = k - plan.k
+    z, v = continued(plan, shift + N, Gamma, K)
+    return z[shift:], v[shift:]
+
+
 def shifted_input(plan: Plan | None, k: int, x_now: np.ndarray, Gamma: np.ndarray, K: np.ndarray) -> np.ndarray:
     """The fallback input v*(k|k') + K (x(k) - z*(k|k')), or K x(k) without a plan; shape (m,)."""
     if plan is None:

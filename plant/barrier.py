@@ -22,7 +22,7 @@ from dmpc.mpc_qp import QPStatus, plan_cost
 from dmpc.plant.dynamics import Plant
 from dmpc.security.rejects import MAX_MAGNITUDE, magnitude
 from dmpc.system import CoupledSystem, project_onto
-from dmpc.trajectories import Plan, continued, shifted_input
+from dmpc.trajectories import Plan, candidate_plan, shifted_input
 
 SOLVED_STATUSES = ("solved", "solved_inaccurate")
 KNOWN_STATUSES = frozenset(s.value for s in QPStatus)
@@ -395,18 +395,9 @@ class Coordinator:
 
     def _candidate(self, i: int, last: Plan | None, x_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The shifted candidate plan of agent i at this step, shapes (N+1, n_i), (N, m_i)."""
-        if last is None:
-            z = [x_i]
-            for _ in range(self.N):
-                z.append(self._gamma[i] @ z[-1])
-            z = np.array(z)
-            return z, (self._K[i] @ z[:-1].T).T
-        shift = self.k - last.k
-        z, v = continued(last, shift + self.N, self._gamma[i], self._K[i])
-        return z[shift:], v[shift:]
+        return candidate_plan(last, self.k, x_i, self.N, self._gamma[i], self._K[i])
 
     def _candidate_cost(self, i: int, plan: Plan) -> float:
         sub = self.system.subsystems[i]
-        shift = self.k - plan.k
-        z, v = continued(plan, shift + self.N, self._gamma[i], self._K[i])
-        return plan_cost(z[shift:], v[shift:], sub.Q, sub.R, self.design.gains.P[i])
+        z, v = candidate_plan(plan, self.k, None, self.N, self._gamma[i], self._K[i])
+        return plan_cost(z, v, sub.Q, sub.R, self.design.gains.P[i])

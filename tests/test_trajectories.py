@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dmpc.trajectories import Plan, assumed_trajectory, continued, coupling_feedforward, k_rollout, shifted_input
+from dmpc.trajectories import (Plan, assumed_trajectory, candidate_plan, continued, coupling_feedforward, k_rollout,
+                               shifted_input)
 
 GAMMA = np.array([[0.0, 1.0], [2.0, 0.0]])
 K = np.array([[1.0, 2.0]])
@@ -92,6 +93,25 @@ def test_assumed_without_a_plan_is_the_k_rollout():
     zhat, vhat = assumed_trajectory(None, 7, X_NOW, N, GAMMA, K)
     np.testing.assert_array_equal(zhat, [[-1, 1], [1, -2], [-2, 2]])
     np.testing.assert_array_equal(vhat, [[1], [-3], [2]])
+
+
+def test_candidate_without_a_plan_is_the_k_rollout_over_the_horizon():
+    z, v = candidate_plan(None, 7, X_NOW, N, GAMMA, K)
+    np.testing.assert_array_equal(z, [[-1, 1], [1, -2], [-2, 2], [2, -4]])
+    np.testing.assert_array_equal(v, [[1], [-3], [2]])
+
+
+@pytest.mark.parametrize("k", [5, 6, 8])
+def test_candidate_is_the_plan_shifted_to_k_and_continued(plan, k):
+    z, v = candidate_plan(plan, k, None, N, GAMMA, K)
+    shift = k - plan.k
+    z_full, v_full = continued(plan, shift + N, GAMMA, K)
+    assert z.shape == (N + 1, 2) and v.shape == (N, 1)
+    np.testing.assert_array_equal(z, z_full[shift:])
+    np.testing.assert_array_equal(v, v_full[shift:])
+    if k == 6:  # plan row 1 on: z(1..3), then Gamma z(3) = (8, 14); v(1..2), then K z(3) = 23
+        np.testing.assert_array_equal(z, [[3, 4], [5, 6], [7, 8], [8, 14]])
+        np.testing.assert_array_equal(v, [[20], [30], [23]])
 
 
 def test_k_rollout():

@@ -22,7 +22,7 @@ from dmpc.mpc_qp import plan_cost
 from dmpc.plant.barrier import StepRecord
 from dmpc.plant.dynamics import Plant
 from dmpc.system import CoupledSystem, project_onto
-from dmpc.trajectories import Plan, continued
+from dmpc.trajectories import Plan, candidate_plan
 
 
 @dataclass
@@ -103,12 +103,4 @@ class CentralLoop:
 
     def _candidate(self, k: int, last: Plan | None, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The last plan shifted to step k with the global K tail, or the K-rollout from x."""
-        if last is None:
-            z = [x]
-            for _ in range(self.N):
-                z.append(self._AK @ z[-1])
-            z = np.array(z)
-            return z, z[:-1] @ self._K.T
-        shift = k - last.k
-        z, v = continued(last, shift + self.N, self._AK, self._K)
-        return z[shift:], v[shift:]
+        return candidate_plan(last, k, x, self.N, self._AK, self._K)
