@@ -42,7 +42,7 @@ class AgentController:
         self._gamma = {j: system.subsystems[j].A + system.subsystems[j].B @ K[j] for j in self.neighbours}
         self._K = {j: K[j] for j in self.neighbours}
         self._A = [system.coupling(index, j)[0] for j in self.neighbours]
-        self._B = [system.coupling(index, j)[1] for j in self.neighbours]
+        self._B = [B if B.any() else None for B in (system.coupling(index, j)[1] for j in self.neighbours)]
         self.method = method
         terminal = terminal_policy(method, system, design).agent_terminal(index)
         self.qp = LocalQP(sub, design.gains.P[index], design.horizon, design.tightening[index], solver_settings,

@@ -1,4 +1,4 @@
-"""The local QP_i of one agent (ALGORITHM.md 3.3), on the shared sparse MPC QP.
+"""The local QP_i of one agent (docs/algorithm.md, "Online step k, agent i", item 3), on the shared sparse MPC QP.
 
     min  sum_{t<N} z(t)'Q_i z(t) + v(t)'R_i v(t) + z(N)'P_i z(N)
     s.t. z(0) = x_i(k),  z(t+1) = A_ii z(t) + B_ii v(t) + c_i(t)

@@ -15,9 +15,9 @@ import numpy as np
 
 from dmpc.agents.controller import AgentController
 from dmpc.bus import keys
-from dmpc.bus.codec import DecodeError, decode, encode
+from dmpc.bus.codec import MAX_NAME, DecodeError, decode, encode
 from dmpc.bus.interface import Bus, Timer
-from dmpc.bus.messages import PLANT, PlanMessage, Ready, Release, Stop
+from dmpc.bus.messages import PLANT, PlanMessage, Ready, Release, Stop, design_claim
 from dmpc.security.rejects import Rejections, out_of_range
 from dmpc.trajectories import Plan
 
@@ -43,21 +43,31 @@ class AgentNode:
     plan_wait : float or None
         How long to wait for a neighbour's referenced plan before using the newest older one;
         None waits as long as it takes (lockstep without losses).
+    scenario : str
+        The scenario's name, sent in ``Ready`` with the horizon so that the plant can say how
+        a differing design differs.
     """
 
     def __init__(self, bus: Bus, controller: AgentController, names: list[str], run_id: str,
-                 design_digest: str, plan_wait: float | None = None) -> None:
+                 design_digest: str, plan_wait: float | None = None, scenario: str = "") -> None:
         self.bus = bus
         self.controller = controller
         self.names = names
         self.run_id = run_id
         self.design_digest = design_digest
+        self.scenario = scenario[:MAX_NAME]
         self.plan_wait = plan_wait
         i = controller.index
         self.name = names[i]
         self.system = controller.system
         self.neighbour_names = {names[j]: j for j in controller.neighbours}
         self.group = {names[j]: j for j in self.system.neighbours[i]}
+        self._known = frozenset(names)
+        self._own = self.system.xs(i)
+        self._state_slices = {j: self.system.xs(j) for j in self.group.values()}
+        N = controller.N
+        self._plan_shapes = {name: ((N + 1, self.system.subsystems[j].n), (N, self.system.subsystems[j].m))
+                             for name, j in self.neighbour_names.items()}
         self.plans: dict[str, OrderedDict] = {name: OrderedDict() for name in self.neighbour_names}
         self.pending: Release | None = None
         self._wait_timer: Timer | None = None
@@ -79,9 +89,9 @@ class AgentNode:
         self._first_k: int | None = None
         self._ready_timer: Timer | None = None
         self._repeat = 0.5
-        bus.subscribe(keys.release(run_id, self.name), self._on_release)
+        bus.subscribe(keys.release(run_id), self._on_release, hot=True)
         for name in self.neighbour_names:
-            bus.subscribe(keys.plan(run_id, name), self._on_plan)
+            bus.subscribe(keys.plan(run_id, name), self._on_plan, hot=True)
         bus.subscribe(keys.control(run_id), self._on_control)
 
     def announce(self, repeat: float = 0.5) -> None:
@@ -136,7 +146,8 @@ class AgentNode:
         self._ready_timer = None
         if self._released or self.stopped:
             return
-        msg = Ready(run=self.run_id, sender=self.name, design_digest=self.design_digest, pid=os.getpid())
+        msg = Ready(run=self.run_id, sender=self.name, design_digest=self.design_digest, pid=os.getpid(),
+                    scenario=self.scenario, horizon=self.controller.N)
         self.bus.publish(keys.ready(self.run_id, self.name), encode(msg))
         self.ready_sent += 1
         self._ready_timer = self.bus.call_later(self._repeat, self._send_ready)
@@ -190,8 +201,8 @@ class AgentNode:
 
     def _on_release(self, key: str, payload: bytes) -> None:
         msg = self._decode(key, payload, Release)
-        if msg is None or not self._checked(self._check_release, msg, PLANT):
-            return
+        if msg is None or self.name in msg.skipped or not self._checked(self._check_release, msg, PLANT):
+            return  # a round that skips this agent is not for it: the plant counts it as lost
         if (msg.k, msg.iteration) <= max(self._last_done, self._latest or self._last_done):
             self.duplicates += 1  # seen already, or older than one seen: a newer release supersedes it
             return
@@ -208,28 +219,25 @@ class AgentNode:
         self._try_solve()
 
     def _check_release(self, msg: Release) -> str | None:
-        if msg.target != self.name or msg.sender != PLANT:
-            return "release for another agent"
+        if msg.sender != PLANT:
+            return "release from another sender"
         if self._latest is not None:
             k, it = self._latest
             if msg.k > k + RELEASE_WINDOW or (msg.k == k and msg.iteration > it + RELEASE_WINDOW):
                 return f"future: step {msg.k} round {msg.iteration} is too far ahead of step {k} round {it}"
-        for name, ref in msg.assumed.items():
-            if ref is not None and tuple(ref) >= (msg.k, msg.iteration):
+        if msg.x.shape != (self.system.n,):
+            return "release state has the wrong shape"
+        if msg.sizes.shape != (self.system.M,):
+            return "release sizes do not match the agents"
+        for name, j in self.neighbour_names.items():
+            ref_k, ref_it = msg.assumed[j]
+            if ref_k >= 0 and (ref_k, ref_it) >= (msg.k, msg.iteration):
                 return f"assumed plan of {name} is not older than the release"
-        if set(msg.states) != set(self.group):
-            return "release states do not match the neighbourhood"
-        for name, j in self.group.items():
-            if msg.states[name].shape != (self.system.subsystems[j].n,):
-                return f"state of {name} has the wrong shape"
-        if msg.alpha.shape != (self.controller.n,):
-            return "alpha has the wrong shape"
-        if set(msg.assumed) != set(self.neighbour_names):
-            return "assumed plans do not match the neighbours"
         for name, (z, v) in msg.provided.items():
-            j = self.neighbour_names.get(name)
-            if j is None or z.shape != (self.controller.N + 1, self.system.subsystems[j].n) \
-                    or v.shape != (self.controller.N, self.system.subsystems[j].m):
+            if name not in self._known:
+                return f"provided plan of unknown agent {name}"
+            shapes = self._plan_shapes.get(name)
+            if shapes is not None and (z.shape, v.shape) != shapes:
                 return f"provided plan of {name} does not fit"
         return None
 
@@ -251,11 +259,10 @@ class AgentNode:
             self._try_solve()
 
     def _check_plan(self, name: str, msg: PlanMessage) -> str | None:
-        j = self.neighbour_names.get(name)
-        if j is None or msg.sender != name:
+        shapes = self._plan_shapes.get(name)
+        if shapes is None or msg.sender != name:
             return "sender does not match its key"
-        sub = self.system.subsystems[j]
-        if msg.z.shape != (self.controller.N + 1, sub.n) or msg.v.shape != (self.controller.N, sub.m):
+        if (msg.z.shape, msg.v.shape) != shapes:
             return "plan has the wrong shape"
         if msg.status in ("solved", "solved_inaccurate") and out_of_range(msg.z, msg.v):
             return "out of range: plan values beyond the magnitude limit"
@@ -294,23 +301,28 @@ class AgentNode:
         if release is None or self.stopped:
             return
         plans = {}
-        for name, ref in release.assumed.items():
-            if name in release.provided and ref is not None:
+        for name, j in self.neighbour_names.items():
+            ref = release.reference(j)
+            if ref is not None and name in release.provided:
                 z, v = release.provided[name]
-                plans[self.neighbour_names[name]] = Plan(ref[0], ref[1], z, v)
+                plans[j] = Plan(ref[0], ref[1], z, v)
                 continue
             # plans published before this agent (re)joined can never arrive: don't wait for them
             found, plan = self._lookup(name, ref, exact and (ref is None or ref[0] >= (self._first_k or 0)))
             if not found:
                 self._arm_wait()
+                self.bus.expect(keys.plan(self.run_id, name))
                 return
             if ref is not None and (plan is None or (plan.k, plan.iteration) != ref):
                 self.stale_assumptions += 1
-            plans[self.neighbour_names[name]] = plan
+            plans[j] = plan
         self.pending = None
         self._cancel_wait()
-        states = {self.group[name]: x for name, x in release.states.items()}
-        sol = self.controller.solve(release.k, states, release.alpha, release.beta, plans)
+        self.bus.expect(None)
+        x = release.x
+        states = {j: x[part] for j, part in self._state_slices.items()}
+        sol = self.controller.solve(release.k, states, release.centres[self._own], float(release.sizes[self.controller.index]),
+                                    plans)
         self.solves += 1
         self._last_done = (release.k, release.iteration)
         msg = PlanMessage(run=self.run_id, k=release.k, iteration=release.iteration, sender=self.name,
@@ -330,6 +342,11 @@ class AgentNode:
         if self._wait_timer is not None:
             self._wait_timer.cancel()
             self._wait_timer = None
+
+    @property
+    def design_refused(self) -> bool:
+        """True if the plant stopped the run naming this agent's design as different from its own."""
+        return self.stopped and design_claim(self.name, self.design_digest) in self.stop_reason
 
     @property
     def released(self) -> bool:

@@ -7,13 +7,11 @@ from dataclasses import dataclass, field
 from dmpc.agents.controller import AgentController
 from dmpc.agents.node import AgentNode
 from dmpc.bus.interface import Bus
+from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from dmpc.runtime.setup import Prepared
 
 log = logging.getLogger("dmpc.agent")
 
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_INTERRUPTED = 130
 # After the plant's liveliness goes, wait this long for it to come back before exiting. A link
 # that broke (or this process, hung past the lease and resumed) reconnects within it: at once,
 # or at Zenoh's first connect retry one second later. A crashed plant never comes back: its
@@ -60,7 +58,8 @@ def run_agent(prepared: Prepared, name: str, bus: Bus, run_id: str, startup_time
     index = prepared.names.index(name)
     controller = AgentController(prepared.system, prepared.design, index,
                                  coupling=prepared.coupling, method=prepared.method)
-    node = AgentNode(bus, controller, prepared.names, run_id, prepared.digest, plan_wait=prepared.plan_wait)
+    node = AgentNode(bus, controller, prepared.names, run_id, prepared.digest, plan_wait=prepared.plan_wait,
+                     scenario=prepared.name)
     node.announce()
     try:
         code, message = _serve(node, bus, name, run_id, startup_timeout)
@@ -83,6 +82,10 @@ def _serve(node: AgentNode, bus: Bus, name: str, run_id: str, startup_timeout: f
         log.warning("agent %s: lost the plant; waiting %g s for it to come back", name, PLANT_GRACE)
         if not bus.run(until=lambda: node.stopped or not node.plant_lost, timeout=PLANT_GRACE):
             return EXIT_FAILED, f"agent {name}: lost the plant after {node.solves} solves; exiting"
+    if node.design_refused:
+        return EXIT_FAILED, (f"agent {name}: its design differs from the plant's: this agent uses design "
+                             f"{node.design_digest} (scenario '{node.scenario}', horizon {node.controller.N}); "
+                             f"the plant stopped the run ({node.stop_reason})")
     if node.stop_reason.startswith("failed"):
         return EXIT_FAILED, f"agent {name}: the plant stopped the run ({node.stop_reason})"
     return EXIT_OK, f"agent {name}: {node.stop_reason} after {node.solves} solves"

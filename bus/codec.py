@@ -1,9 +1,12 @@
 """The one encode/decode pair of the wire format: msgpack maps with a schema version.
 
-Arrays travel as ``{"dtype": "<f8", "shape": [...], "data": bytes}``. ``decode`` checks
-everything that can be checked without knowing the scenario (types, finiteness, array
-encodings, field sets) and raises ``DecodeError`` for anything else; it never raises another
-exception type. ``decode(encode(m))`` equals ``m``.
+Arrays travel as ``{"dtype": "<f8", "shape": [...], "data": bytes}`` (``"<i8"`` for integer
+arrays). ``decode`` checks everything that can be checked without knowing the scenario (types,
+finiteness, array encodings, field sets) and raises ``DecodeError`` for anything else; it never
+raises another exception type. ``decode(encode(m))`` equals ``m``.
+
+Both run on every message of every step, so the plan and the release have encoders and parsers
+of their own, with each check done once and no walk over the values.
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ from dmpc.bus.messages import (MESSAGE_TYPES, SCHEMA_VERSION, TYPE_NAMES, Messag
 MAX_PAYLOAD = 1 << 20
 MAX_NAME = 64
 MAX_ARRAY_ELEMENTS = 1 << 16
+MAX_REASON = 1000
 
 
 class DecodeError(ValueError):
@@ -27,20 +31,52 @@ class DecodeError(ValueError):
 
 _FIELDS: dict[type, tuple[str, ...]] = {cls: tuple(f.name for f in fields(cls)) for cls in MESSAGE_TYPES.values()}
 _FIELD_SETS: dict[type, frozenset] = {cls: frozenset(names) for cls, names in _FIELDS.items()}
+# fields a sender may leave out (added after the first release of the format); decode fills in the default
+_OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"})}
 
 
 def encode(msg: Message) -> bytes:
     """Serialise a message to bytes."""
-    body = {"schema": SCHEMA_VERSION, "type": TYPE_NAMES[type(msg)]}
-    for name in _FIELDS[type(msg)]:
-        body[name] = _to_wire(getattr(msg, name))
+    cls = type(msg)
+    if cls is PlanMessage:
+        body = _plan_body(msg)
+    elif cls is Release:
+        body = _release_body(msg)
+    else:
+        body = {"schema": SCHEMA_VERSION, "type": TYPE_NAMES[cls]}
+        for name in _FIELDS[cls]:
+            body[name] = _to_wire(getattr(msg, name))
     return msgpack.packb(body, use_bin_type=True)
+
+
+def _scalar(value):
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _wire_array(value: np.ndarray) -> dict:
+    dtype = "<i8" if value.dtype.kind in "iub" else "<f8"
+    arr = np.ascontiguousarray(value, dtype=dtype)
+    return {"dtype": dtype, "shape": list(arr.shape), "data": arr.tobytes()}
+
+
+def _plan_body(m: PlanMessage) -> dict:
+    return {"schema": SCHEMA_VERSION, "type": "plan", "run": m.run, "k": _scalar(m.k), "iteration": _scalar(m.iteration),
+            "sender": m.sender, "status": m.status, "z": _wire_array(m.z), "v": _wire_array(m.v),
+            "cost": _scalar(m.cost), "solve_time": _scalar(m.solve_time), "qp_iterations": _scalar(m.qp_iterations),
+            "sent_at": _scalar(m.sent_at)}
+
+
+def _release_body(m: Release) -> dict:
+    return {"schema": SCHEMA_VERSION, "type": "release", "run": m.run, "k": _scalar(m.k),
+            "iteration": _scalar(m.iteration), "x": _wire_array(m.x), "centres": _wire_array(m.centres),
+            "sizes": _wire_array(m.sizes), "assumed": _wire_array(m.assumed), "sender": m.sender,
+            "skipped": list(m.skipped),
+            "provided": {name: [_wire_array(z), _wire_array(v)] for name, (z, v) in m.provided.items()}}
 
 
 def _to_wire(value):
     if isinstance(value, np.ndarray):
-        arr = np.ascontiguousarray(value, dtype="<f8")
-        return {"dtype": "<f8", "shape": list(arr.shape), "data": arr.tobytes()}
+        return _wire_array(value)
     if isinstance(value, dict):
         return {k: _to_wire(v) for k, v in value.items()}
     if isinstance(value, (tuple, list)):
@@ -61,16 +97,18 @@ def decode(payload: bytes) -> Message:
                                max_bin_len=MAX_PAYLOAD, max_str_len=4096, max_array_len=4096, max_map_len=4096)
     except Exception as exc:  # msgpack raises several unrelated types on garbage
         raise DecodeError(f"not msgpack: {type(exc).__name__}") from None
-    if not isinstance(body, dict):
+    if type(body) is not dict:
         raise DecodeError("top level is not a map")
     if body.get("schema") != SCHEMA_VERSION:
         raise DecodeError(f"schema version {body.get('schema')!r} is not {SCHEMA_VERSION}")
     cls = MESSAGE_TYPES.get(body.get("type")) if isinstance(body.get("type"), str) else None
     if cls is None:
         raise DecodeError(f"unknown message type {body.get('type')!r}")
+    if body.keys() == _WIRE_KEYS[cls]:
+        return _PARSERS[cls](body)
     expected = _FIELD_SETS[cls]
     present = set(body) - {"schema", "type"}
-    if present != expected:
+    if not expected - _OPTIONAL.get(cls, frozenset()) <= present <= expected:
         missing, extra = sorted(expected - present), sorted(map(str, present - expected))
         raise DecodeError(f"{cls.__name__}: missing fields {missing}, unexpected fields {extra}")
     return _PARSERS[cls](body)
@@ -78,86 +116,91 @@ def decode(payload: bytes) -> Message:
 
 def _int(body: dict, name: str, minimum: int = 0) -> int:
     v = body[name]
-    if not isinstance(v, int) or isinstance(v, bool) or v < minimum or v > 2**53:
+    if type(v) is not int or v < minimum or v > 2**53:
         raise DecodeError(f"{name}: expected an integer >= {minimum}, got {v!r:.40}")
     return v
 
 
 def _str(value, name: str) -> str:
-    if not isinstance(value, str) or not value or len(value) > MAX_NAME:
+    if type(value) is not str or not value or len(value) > MAX_NAME:
         raise DecodeError(f"{name}: expected a non-empty string of at most {MAX_NAME} characters")
     return value
 
 
 def _float(body: dict, name: str, allow_nan: bool = False) -> float:
     v = body[name]
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise DecodeError(f"{name}: expected a number, got {type(v).__name__}")
-    v = float(v)
-    if math.isinf(v) or (math.isnan(v) and not allow_nan):
+    if type(v) is not float:
+        if type(v) is not int:
+            raise DecodeError(f"{name}: expected a number, got {type(v).__name__}")
+        v = float(v)
+    if v - v != 0.0 and (math.isinf(v) or not allow_nan):  # v - v is NaN for NaN and infinities
         raise DecodeError(f"{name}: not a finite number")
     return v
 
 
-def _array(value, name: str, ndim: int, allow_nan: bool = False) -> np.ndarray:
-    if not isinstance(value, dict) or set(value) != {"dtype", "shape", "data"}:
+_ARRAY_KEYS = {"dtype", "shape", "data"}
+
+
+def _array(value, name: str, ndim: int, allow_nan: bool = False, dtype: str = "<f8") -> np.ndarray:
+    if type(value) is not dict or value.keys() != _ARRAY_KEYS:
         raise DecodeError(f"{name}: expected an array map with dtype, shape, data")
-    if value["dtype"] != "<f8":
-        raise DecodeError(f"{name}: dtype {value['dtype']!r:.20} is not <f8")
+    if value["dtype"] != dtype:
+        raise DecodeError(f"{name}: dtype {value['dtype']!r:.20} is not {dtype}")
     shape = value["shape"]
-    if not isinstance(shape, list) or len(shape) != ndim:
+    if type(shape) is not list or len(shape) != ndim:
         raise DecodeError(f"{name}: shape must be {ndim} non-negative integers")
+    count = 1
     for s in shape:
         if type(s) is not int or not 0 <= s <= MAX_ARRAY_ELEMENTS:
             raise DecodeError(f"{name}: shape must be {ndim} non-negative integers")
-    count = math.prod(shape)
+        count *= s
     data = value["data"]
-    if not isinstance(data, bytes) or count > MAX_ARRAY_ELEMENTS or len(data) != 8 * count:
+    if type(data) is not bytes or count > MAX_ARRAY_ELEMENTS or len(data) != 8 * count:
         raise DecodeError(f"{name}: data length does not match shape {shape}")
     # read-only view on the payload: nothing downstream writes into received arrays
-    arr = np.frombuffer(data, dtype="<f8").reshape(shape)
-    if not np.isfinite(arr).all() and (not allow_nan or np.isinf(arr).any()):
+    arr = np.frombuffer(data, dtype=dtype).reshape(shape)
+    if dtype == "<f8" and not np.isfinite(arr).all() and (not allow_nan or np.isinf(arr).any()):
         raise DecodeError(f"{name}: non-finite values")
     return arr
 
 
 def _parse_release(b: dict) -> Release:
-    states = b["states"]
-    if not isinstance(states, dict) or not states or len(states) > 1024:
-        raise DecodeError("states: expected a non-empty map name -> array")
-    parsed_states = {_str(k, "states key"): _array(v, f"states[{k}]", 1) for k, v in states.items()}
-    assumed = b["assumed"]
-    if not isinstance(assumed, dict) or len(assumed) > 1024:
-        raise DecodeError("assumed: expected a map name -> [k, round] or nil")
-    parsed_assumed = {}
-    for key, ref in assumed.items():
-        _str(key, "assumed key")
-        if ref is None:
-            parsed_assumed[key] = None
-        elif (isinstance(ref, list) and len(ref) == 2
-              and all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 2**53 for x in ref)):
-            parsed_assumed[key] = (ref[0], ref[1])
-        else:
-            raise DecodeError(f"assumed[{key}]: expected [k, round] or nil")
-    beta = _float(b, "beta")
-    if beta < 0:
-        raise DecodeError("beta: negative")
+    x = _array(b["x"], "x", 1)
+    centres = _array(b["centres"], "centres", 1)
+    if centres.shape != x.shape:
+        raise DecodeError(f"centres: {centres.size} entries for a state of {x.size}")
+    sizes = _array(b["sizes"], "sizes", 1)
+    if sizes.size == 0 or sizes.min() < 0:
+        raise DecodeError("sizes: expected one non-negative size per agent")
+    assumed = _array(b["assumed"], "assumed", 2, dtype="<i8")
+    if assumed.shape != (sizes.size, 2):
+        raise DecodeError(f"assumed: expected one [k, round] row per agent ({sizes.size}), got shape {assumed.shape}")
+    if assumed.min() < 0:
+        none = assumed[:, 0] < 0
+        if (assumed[none] != -1).any() or (assumed[~none, 1] < 0).any():
+            raise DecodeError("assumed: rows must be [k, round] >= 0, or [-1, -1] for none")
+    if assumed.max() > 2**53:
+        raise DecodeError("assumed: step beyond 2^53")
+    skipped = b["skipped"]
+    if type(skipped) is not list or len(skipped) > sizes.size:
+        raise DecodeError("skipped: expected a list of at most one name per agent")
+    for name in skipped:
+        _str(name, "skipped name")
     provided = b["provided"]
-    if not isinstance(provided, dict) or len(provided) > 1024:
-        raise DecodeError("provided: expected a map name -> [z, v]")
+    if type(provided) is not dict or len(provided) > sizes.size:
+        raise DecodeError("provided: expected a map name -> [z, v], at most one per agent")
     parsed_provided = {}
     for key, pair in provided.items():
         _str(key, "provided key")
-        if not isinstance(pair, list) or len(pair) != 2:
+        if type(pair) is not list or len(pair) != 2:
             raise DecodeError(f"provided[{key}]: expected [z, v]")
         z, v = _array(pair[0], f"provided[{key}].z", 2), _array(pair[1], f"provided[{key}].v", 2)
         if z.shape[0] != v.shape[0] + 1:
             raise DecodeError(f"provided[{key}]: z needs one row more than v")
         parsed_provided[key] = (z, v)
-    return Release(run=_str(b["run"], "run"), k=_int(b, "k"), iteration=_int(b, "iteration"),
-                   target=_str(b["target"], "target"), states=parsed_states,
-                   alpha=_array(b["alpha"], "alpha", 1), beta=beta, assumed=parsed_assumed,
-                   sender=_str(b["sender"], "sender"), provided=parsed_provided)
+    return Release(run=_str(b["run"], "run"), k=_int(b, "k"), iteration=_int(b, "iteration"), x=x, centres=centres,
+                   sizes=sizes, assumed=assumed, sender=_str(b["sender"], "sender"), skipped=tuple(skipped),
+                   provided=parsed_provided)
 
 
 def _parse_plan(b: dict) -> PlanMessage:
@@ -178,15 +221,21 @@ def _parse_plan(b: dict) -> PlanMessage:
 
 
 def _parse_ready(b: dict) -> Ready:
+    scenario = b.get("scenario", "")
+    if not isinstance(scenario, str) or len(scenario) > MAX_NAME:
+        raise DecodeError(f"scenario: expected a string of at most {MAX_NAME} characters")
     return Ready(run=_str(b["run"], "run"), sender=_str(b["sender"], "sender"),
-                 design_digest=_str(b["design_digest"], "design_digest"), pid=_int(b, "pid"))
+                 design_digest=_str(b["design_digest"], "design_digest"), pid=_int(b, "pid"),
+                 scenario=scenario, horizon=_int(b, "horizon") if "horizon" in b else 0)
 
 
 def _parse_stop(b: dict) -> Stop:
     reason = b["reason"]
-    if not isinstance(reason, str) or len(reason) > 1000:
+    if not isinstance(reason, str) or len(reason) > MAX_REASON:
         raise DecodeError("reason: expected a string")
     return Stop(run=_str(b["run"], "run"), k=_int(b, "k"), reason=reason, sender=_str(b["sender"], "sender"))
 
 
 _PARSERS = {Release: _parse_release, PlanMessage: _parse_plan, Ready: _parse_ready, Stop: _parse_stop}
+# every field present: the common case, checked with one comparison
+_WIRE_KEYS = {cls: frozenset(names) | {"schema", "type"} for cls, names in _FIELD_SETS.items()}

@@ -108,8 +108,11 @@ class FaultyBus(Bus):
     def publish(self, key: str, payload: bytes) -> None:
         self.inner.publish(key, payload)
 
-    def subscribe(self, key: str, handler: Handler) -> None:
-        self.inner.subscribe(key, self._wrap(handler))
+    def subscribe(self, key: str, handler: Handler, hot: bool = False) -> None:
+        self.inner.subscribe(key, self._wrap(handler), hot)
+
+    def expect(self, key: str | None) -> None:
+        self.inner.expect(key)
 
     def declare_alive(self, key: str) -> None:
         self.inner.declare_alive(key)

@@ -26,8 +26,18 @@ class Bus(ABC):
         """Send ``payload`` to every subscriber of ``key``."""
 
     @abstractmethod
-    def subscribe(self, key: str, handler: Handler) -> None:
-        """Call ``handler(key, payload)`` for each message on ``key`` (``prefix/*`` matches one chunk)."""
+    def subscribe(self, key: str, handler: Handler, hot: bool = False) -> None:
+        """Call ``handler(key, payload)`` for each message on ``key`` (``prefix/*`` matches one chunk).
+
+        ``hot`` marks the subscription the node waits on in its steady state (the releases for an
+        agent, the plans for the plant): a transport may read it on the dispatch thread directly.
+        Messages keep their order per key; across keys, a hot one may be handled before others
+        that arrived just before it.
+        """
+
+    def expect(self, key: str | None) -> None:
+        """A hint: the node's next needed message comes on hot key ``key`` (None: any). Transports
+        that wait on one hot key at a time wait on it; others ignore the hint."""
 
     @abstractmethod
     def declare_alive(self, key: str) -> None:

@@ -1,10 +1,11 @@
 """Every key expression of the protocol, built in one place.
 
-``dmpc/<run>/release/<agent>``  plant -> agent
+``dmpc/<run>/release``          plant -> every agent (one broadcast per round)
 ``dmpc/<run>/plan/<agent>``     agent -> neighbours, plant
 ``dmpc/<run>/ready/<agent>``    agent -> plant
 ``dmpc/<run>/control``          plant -> all (Stop)
 ``dmpc/<run>/alive/<role>``     liveliness tokens (``plant`` or ``agent-<name>``)
+``dmpc/<run>/telemetry/<kind>`` plant -> observers (``step``, ``meta``, ``end``; best effort)
 """
 from __future__ import annotations
 
@@ -21,8 +22,8 @@ def check_chunk(text: str, what: str) -> str:
     return text
 
 
-def release(run: str, agent: str) -> str:
-    return f"{ROOT}/{run}/release/{agent}"
+def release(run: str) -> str:
+    return f"{ROOT}/{run}/release"
 
 
 def plan(run: str, agent: str) -> str:
@@ -39,6 +40,14 @@ def control(run: str) -> str:
 
 def alive(run: str, role: str) -> str:
     return f"{ROOT}/{run}/alive/{role}"
+
+
+def telemetry(run: str, kind: str) -> str:
+    return f"{ROOT}/{run}/telemetry/{kind}"
+
+
+def telemetry_prefix(run: str) -> str:
+    return f"{ROOT}/{run}/telemetry/*"
 
 
 def agent_role(agent: str) -> str:

@@ -49,7 +49,7 @@ class MemoryBus(Bus):
             if key_matches(pattern, key):
                 self._schedule(self._time, lambda h=handler: h(key, data))
 
-    def subscribe(self, key: str, handler: Handler) -> None:
+    def subscribe(self, key: str, handler: Handler, hot: bool = False) -> None:
         self._subs.append((key, handler))
 
     def declare_alive(self, key: str) -> None:

@@ -1,7 +1,8 @@
 """The messages of the step protocol (typed, immutable).
 
-- ``Release`` plant -> agent i: step k, Jacobi round, the measured states of N_i, alpha_i, beta
-  and, per neighbour, which of its plans to build the assumed trajectory from.
+- ``Release`` plant -> every agent (one broadcast): step k, Jacobi round, the measured state,
+  each agent's terminal centre and size and, per agent, which of its plans its neighbours build
+  their assumed trajectory from.
 - ``PlanMessage`` agent i -> neighbours and plant: the solved plan of (k, round).
 - ``Ready`` agent -> plant: the agent is set up (with the digest of its design).
 - ``Stop`` plant -> everyone: the run is over (finished, aborted, failed).
@@ -14,38 +15,52 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 PLANT = "plant"
 
 
 @dataclass(frozen=True)
 class Release:
-    """Step k, round ``iteration``, released to agent ``target``.
+    """Step k, round ``iteration``, released to every agent at once.
+
+    One message per round for the whole run: each agent reads its own part (the states of N_i,
+    its centre and size, its neighbours' references). Agents are indexed in the scenario's order.
 
     Attributes
     ----------
-    states : dict name -> ndarray (n_j,)
-        x_j(k) for every j in N_i (i included).
-    alpha : ndarray, shape (n_i,)
-    beta : float
-    assumed : dict name -> (k', round') or None
-        For each neighbour j != i: build its assumed trajectory from its plan of (k', round');
-        None means the decoupled K-rollout from x_j(k).
+    x : ndarray, shape (n,)
+        The measured state x(k) of every subsystem.
+    centres : ndarray, shape (n,)
+        The terminal centres released, agent i's on its own coordinates (alpha_i(k) for the box
+        methods, zeros for the ellipsoid ones).
+    sizes : ndarray, shape (M,)
+        The terminal size released to each agent (beta(k) for the box methods, the level r_i(k)
+        for the ellipsoid ones).
+    assumed : ndarray of int64, shape (M, 2)
+        Row j: the plan (k', round') of agent j that its neighbours build its assumed trajectory
+        from; ``(-1, -1)`` means none, the decoupled K-rollout from x_j(k).
+    skipped : tuple of str
+        Agents not released this round (lost ones): they ignore it.
     provided : dict name -> (z, v)
         Plans supplied by the coordinator itself (the centralised seed at k = 0); they stand for
-        the neighbours' plans named in ``assumed``. Usually empty.
+        the plans named in ``assumed``. Usually empty.
     """
 
     run: str
     k: int
     iteration: int
-    target: str
-    states: dict[str, np.ndarray]
-    alpha: np.ndarray
-    beta: float
-    assumed: dict[str, tuple[int, int] | None]
+    x: np.ndarray
+    centres: np.ndarray
+    sizes: np.ndarray
+    assumed: np.ndarray
     sender: str = PLANT
+    skipped: tuple[str, ...] = ()
     provided: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def reference(self, j: int) -> tuple[int, int] | None:
+        """The plan (k', round') agent j's assumed trajectory is built from, or None (K-rollout)."""
+        k, r = self.assumed[j]
+        return None if k < 0 else (int(k), int(r))
 
 
 @dataclass(frozen=True)
@@ -83,12 +98,18 @@ class PlanMessage:
 
 @dataclass(frozen=True)
 class Ready:
-    """Agent ``sender`` is set up and subscribed; ``design_digest`` identifies its design."""
+    """Agent ``sender`` is set up and subscribed; ``design_digest`` identifies its design.
+
+    ``scenario`` (its scenario's name) and ``horizon`` (N) only help to say how a design
+    differs from the plant's; a sender may leave them out ("" and 0: unknown).
+    """
 
     run: str
     sender: str
     design_digest: str
     pid: int = 0
+    scenario: str = ""
+    horizon: int = 0
 
 
 @dataclass(frozen=True)
@@ -105,6 +126,14 @@ Message = Release | PlanMessage | Ready | Stop
 
 MESSAGE_TYPES: dict[str, type] = {"release": Release, "plan": PlanMessage, "ready": Ready, "stop": Stop}
 TYPE_NAMES: dict[type, str] = {v: k for k, v in MESSAGE_TYPES.items()}
+
+
+def design_claim(name: str, digest: str) -> str:
+    """The words with which the plant's ``Stop`` reason names agent ``name``'s differing design.
+
+    An agent that finds them with its own name and digest knows that the plant refused its design.
+    """
+    return f"agent {name} uses design {digest}"
 
 
 def messages_equal(a: Message, b: Message) -> bool:

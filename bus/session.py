@@ -10,6 +10,7 @@ import ipaddress
 import json
 import re
 import socket
+import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,6 +227,47 @@ def _endpoints(config: zenoh.Config, key: str) -> list[str]:
     return value if isinstance(value, list) else []
 
 
+OPEN_POLL = 0.05
+"""How often the main thread checks for Ctrl-C or SIGTERM while a session opens."""
+_abandoned_opens: list[threading.Thread] = []
+
+
+def opens_abandoned() -> bool:
+    """True if an interrupted :func:`open_session` left a session opening in the background.
+
+    Such a process must end with ``os._exit``: an interpreter exit would tear the thread down
+    inside Zenoh's native code.
+    """
+    return bool(_abandoned_opens)
+
+
+def _open_interruptibly(config: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open`` on a helper thread, so that Ctrl-C and SIGTERM reach the main thread at once.
+
+    ``zenoh.open`` blocks in native code for as long as it keeps trying the connect endpoints,
+    and Python runs signal handlers only between bytecodes of the main thread.
+    """
+    result: dict = {}
+
+    def target() -> None:
+        try:
+            result["session"] = zenoh.open(config)
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+            result["error"] = exc
+
+    thread = threading.Thread(target=target, name="zenoh-open", daemon=True)
+    thread.start()
+    try:
+        while thread.is_alive():
+            thread.join(OPEN_POLL)
+    except KeyboardInterrupt:
+        _abandoned_opens.append(thread)
+        raise
+    if "error" in result:
+        raise result["error"]
+    return result["session"]
+
+
 def open_session(config: zenoh.Config, timeout: float = 10.0) -> zenoh.Session:
     """Open a session, failing with BusError when a connect endpoint is not reachable in time.
 
@@ -254,7 +296,7 @@ def open_session(config: zenoh.Config, timeout: float = 10.0) -> zenoh.Session:
         _insert(config, "connect/timeout_ms", max(1, int(timeout * 1000)))
         _insert(config, "connect/exit_on_failure", True)
     try:
-        return zenoh.open(config)
+        return _open_interruptibly(config)
     except zenoh.ZError as exc:
         mode = json.loads(config.get_json("mode")) or "peer"
         reason = _RUST_LOCATION.sub("", str(exc)).strip()

@@ -1,9 +1,21 @@
 """The Zenoh implementation of :class:`~dmpc.bus.interface.Bus`.
 
-Zenoh calls subscriber callbacks on its own threads. Here those callbacks only copy the key
-and payload onto one thread-safe queue; ``run`` pops the queue and calls the handlers on the
-thread that calls it, so node code stays single-threaded exactly as with the in-memory bus.
-One queue for every subscription keeps the arrival order across keys.
+Handlers, liveliness events and timers all run on the thread that calls ``run``, so node code
+stays single-threaded exactly as with the in-memory bus. Messages get there two ways:
+
+- A **hot** subscription (see :meth:`ZenohBus.subscribe`) is a channel inside Zenoh that ``run``
+  reads itself: a message goes from Zenoh's network thread straight to the ``run`` thread, and no
+  Python code runs on Zenoh's threads for it. When idle, ``run`` waits on one hot channel: the one
+  named by :meth:`ZenohBus.expect` (the message the node needs next), else the first one
+  subscribed. The other hot channels are read whenever ``run`` wakes.
+- Every other subscription and liveliness watch has a callback on Zenoh's thread that copies the
+  key and payload onto one thread-safe queue. While ``run`` waits on a hot channel, such a
+  callback (and a timer coming due, or every ``POLL`` seconds so that Ctrl-C is seen) wakes it
+  with a message put on that channel's key inside this session only, carrying a random token that
+  nothing else can send.
+
+Messages keep their order per key; across keys, queued ones are handled first when ``run`` wakes,
+then the hot channels other than the first, then the first.
 
 Errors
 ------
@@ -17,6 +29,7 @@ import atexit
 import heapq
 import itertools
 import logging
+import os
 import queue
 import threading
 import time
@@ -26,12 +39,27 @@ from collections.abc import Callable
 import zenoh
 
 from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer
-from dmpc.bus.session import BusError, open_session, session_config
+from dmpc.bus.session import BusError, open_session, opens_abandoned, session_config
 
 log = logging.getLogger(__name__)
 
 ENCODING = "application/msgpack"
 POLL = 0.1  # longest wait in run(): bounds the delay before Ctrl-C is seen
+HOT_CAPACITY = 8192
+"""Messages a hot channel holds for ``run``; beyond it the oldest are dropped (Zenoh's threads
+never wait for the node)."""
+
+
+class _Hot:
+    """One hot key: its Zenoh subscriber (a ring channel), handlers and session-local waker."""
+
+    __slots__ = ("key", "subscriber", "handlers", "waker")
+
+    def __init__(self, key: str, subscriber, waker) -> None:
+        self.key = key
+        self.subscriber = subscriber
+        self.handlers: list[Handler] = []
+        self.waker = waker
 # Closing a session can wait for a link to a peer that is hung (stopped, but its kernel still
 # accepts TCP connections); after this long the session is left to the process's exit.
 CLOSE_TIMEOUT = 1.0
@@ -44,8 +72,9 @@ _left_open: list[zenoh.Session] = []
 
 
 def sessions_left_open() -> bool:
-    """True if a session in this process did not close within CLOSE_TIMEOUT."""
-    return bool(_left_open)
+    """True if a session in this process did not close within CLOSE_TIMEOUT, or was left
+    opening by an interrupted start-up."""
+    return bool(_left_open) or opens_abandoned()
 
 
 @atexit.register
@@ -120,6 +149,17 @@ class ZenohBus(Bus):
         self._closed = False
         self.dropped = 0
         self.callback_errors = 0
+        self._hot: dict[str, _Hot] = {}  # by key, in the order subscribed
+        self._first: _Hot | None = None
+        self._others: list[_Hot] = []
+        self._expected: _Hot | None = None
+        self._token = os.urandom(16)
+        self._wait = threading.Condition(threading.Lock())  # guards the five fields below
+        self._blocked: _Hot | None = None  # the hot channel run() is waiting on
+        self._woken = False  # a wake-up message is on its way
+        self._wake_at = 0.0  # when the alarm thread wakes run() at the latest
+        self._alarm_at = 0.0  # when the alarm thread looks next (it is told only of earlier times)
+        self._alarm: threading.Thread | None = None
         _open_buses.add(self)
 
     @classmethod
@@ -181,6 +221,15 @@ class ZenohBus(Bus):
             self.dropped += 1
             return
         self._queue.put((handler, key, value))
+        if self._first is not None:
+            with self._wait:
+                self._wake_locked()
+
+    def _wake_locked(self) -> None:
+        """Wake a run() waiting on a hot channel (call with ``_wait`` held)."""
+        if self._blocked is not None and not self._woken:
+            self._woken = True
+            self._blocked.waker.put(self._token)
 
     def _on_sample(self, handler: Handler) -> zenoh.handlers.Callback:
         def callback(sample: zenoh.Sample) -> None:
@@ -211,10 +260,62 @@ class ZenohBus(Bus):
             self._check_open()
             self._declared.append(make())
 
-    def subscribe(self, key: str, handler: Handler) -> None:
-        """Call ``handler(key, payload)`` on the ``run`` thread for each message on ``key``."""
+    def subscribe(self, key: str, handler: Handler, hot: bool = False) -> None:
+        """Call ``handler(key, payload)`` on the ``run`` thread for each message on ``key``.
+
+        ``hot``: ``run`` reads this key's messages from Zenoh itself, without a hand-over
+        between threads (more handlers on the same key are fine).
+        """
         expr = _key_expr(key)
-        self._declare(lambda: self._session.declare_subscriber(expr, self._on_sample(handler)))
+        if not hot:
+            self._declare(lambda: self._session.declare_subscriber(expr, self._on_sample(handler)))
+            return
+        entry = self._hot.get(key)
+        if entry is None:
+            entry = self._declare_hot(key, expr)
+        entry.handlers.append(handler)
+
+    def _declare_hot(self, key: str, expr: zenoh.KeyExpr) -> _Hot:
+        with self._lock:
+            self._check_open()
+            subscriber = self._session.declare_subscriber(expr, zenoh.handlers.RingChannel(HOT_CAPACITY))
+            waker = self._session.declare_publisher(_key_expr(_wake_key(key)), express=True,
+                                                    allowed_destination=zenoh.Locality.SESSION_LOCAL)
+            entry = self._hot[key] = _Hot(key, subscriber, waker)
+        if self._first is None:
+            self._first = entry
+            self._alarm = threading.Thread(target=self._alarm_loop, name="dmpc-bus-alarm", daemon=True)
+            self._alarm.start()
+        else:
+            self._others.append(entry)
+        return entry
+
+    def expect(self, key: str | None) -> None:
+        """Wait on hot key ``key`` when idle (None: the first hot key): the next message the node needs.
+
+        A hint: messages on other keys are still handled, but a hot one may wait until ``run``
+        wakes for another reason (at most ``POLL`` seconds).
+        """
+        self._expected = self._hot.get(key) if key is not None else None
+
+    def _alarm_loop(self) -> None:
+        """Wake a run() waiting on the hot channel when its next timer or POLL comes due.
+
+        It looks at least every POLL seconds; run() tells it only of wake times earlier than
+        its next look, so that a wait that ends with a message costs it nothing.
+        """
+        with self._wait:
+            while not self._closed:
+                now = time.monotonic()
+                waiting = self._blocked is not None and not self._woken
+                if waiting and self._wake_at <= now:
+                    try:
+                        self._wake_locked()
+                    except Exception:  # noqa: BLE001 - the session is closing
+                        return
+                    continue
+                self._alarm_at = self._wake_at if waiting else now + POLL
+                self._wait.wait(self._alarm_at - now)
 
     def declare_alive(self, key: str) -> None:
         """Hold a liveliness token on ``key`` until :meth:`close` (or the process dies)."""
@@ -240,9 +341,16 @@ class ZenohBus(Bus):
     def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
         """Run ``fn`` on the ``run`` thread ``delay`` seconds from now (thread-safe)."""
         timer = _ZenohTimer(fn)
+        due = time.monotonic() + max(0.0, delay)
         with self._lock:
-            heapq.heappush(self._timers, (time.monotonic() + max(0.0, delay), next(self._seq), timer))
+            heapq.heappush(self._timers, (due, next(self._seq), timer))
         self._queue.put(None)  # wake a run() waiting on the queue so it sees the new deadline
+        if self._first is not None:
+            with self._wait:
+                if self._blocked is not None and due < self._wake_at:
+                    self._wake_at = due
+                    if due < self._alarm_at:
+                        self._wait.notify_all()
         return timer
 
     def _due_timer(self, now: float) -> tuple[_ZenohTimer | None, float | None]:
@@ -271,18 +379,60 @@ class ZenohBus(Bus):
                 continue
             if deadline is not None and now >= deadline:
                 return False
-            wait = POLL
+            wake_at = now + POLL
             for limit in (next_at, deadline):
                 if limit is not None:
-                    wait = min(wait, limit - now)
-            try:
-                item = self._queue.get(timeout=max(wait, 0.0))
-            except queue.Empty:
-                continue
+                    wake_at = min(wake_at, limit)
+            item = self._next_item(wake_at)
             if item is not None:
                 handler, key, value = item
                 handler(key, value)
         return True
+
+    def _next_item(self, wake_at: float):
+        """The next event to handle, waiting until ``wake_at`` at most; None if there is none yet."""
+        if self._first is None:
+            try:
+                return self._queue.get(timeout=max(wake_at - time.monotonic(), 0.0))
+            except queue.Empty:
+                return None
+        try:
+            return self._queue.get_nowait()
+        except queue.Empty:
+            pass
+        for entry in self._others:
+            sample = entry.subscriber.try_recv()
+            if sample is not None:
+                return self._hot_item(entry, sample)
+        entry = self._first
+        sample = entry.subscriber.try_recv()
+        if sample is None:
+            entry = self._expected or self._first
+            with self._wait:
+                if not self._queue.empty():
+                    return None
+                self._blocked, self._woken, self._wake_at = entry, False, wake_at
+                if wake_at < self._alarm_at:
+                    self._wait.notify_all()
+            try:
+                sample = entry.subscriber.recv()
+            finally:
+                with self._wait:
+                    self._blocked = None
+        return self._hot_item(entry, sample)
+
+    def _hot_item(self, entry: _Hot, sample: zenoh.Sample):
+        payload = sample.payload
+        if len(payload) > self._max_payload:
+            self.dropped += 1
+            return None
+        data = payload.to_bytes()
+        if data == self._token:
+            return None  # a wake-up
+        handlers = entry.handlers
+        if len(handlers) == 1:
+            return handlers[0], str(sample.key_expr), data
+        return _to_all(handlers), str(sample.key_expr), data
 
     def queue_depth(self) -> int:
         """Events received and not yet dispatched."""
@@ -304,10 +454,13 @@ class ZenohBus(Bus):
             if self._closed:
                 return
             self._closed = True
-            entities = list(self._publishers.values()) + self._declared[::-1]
+            hot = [e for entry in self._hot.values() for e in (entry.waker, entry.subscriber)]
+            entities = list(self._publishers.values()) + hot + self._declared[::-1]
             self._publishers.clear()
             self._declared.clear()
             self._timers.clear()
+        with self._wait:
+            self._wait.notify_all()  # the alarm thread sees _closed and ends
         for entity in entities:
             try:
                 entity.undeclare()
@@ -335,6 +488,19 @@ def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback:
     # the interpreter joins at exit before atexit hooks run: a bus left open then hangs the
     # process. Our callbacks only enqueue, so they can run on Zenoh's own thread.
     return zenoh.handlers.Callback(fn, indirect=False)
+
+
+def _to_all(handlers: list[Handler]) -> Handler:
+    def deliver(key: str, data: bytes) -> None:
+        for handler in handlers:
+            handler(key, data)
+
+    return deliver
+
+
+def _wake_key(key: str) -> str:
+    """A key that the hot subscription ``key`` matches: its wildcard chunks replaced by ``_``."""
+    return "/".join("_" if "*" in chunk else chunk for chunk in key.split("/"))
 
 
 def _key_expr(key: str) -> zenoh.KeyExpr:

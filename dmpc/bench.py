@@ -154,6 +154,51 @@ def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), 
     }
 
 
+def floor_spec(M: int, steps: int, compute_us: float, root: Path = Path(".")):
+    """The bare lockstep loop (:mod:`dmpc.bench_floor`) that mirrors a run of M agents: the same
+    processes, topology and neighbours, payloads of the run's release and plan sizes, and
+    ``compute_us`` of CPU per agent and step."""
+    from dmpc.bench_floor import FloorSpec
+    from dmpc.bus.codec import encode
+    from dmpc.bus.messages import PlanMessage, Release
+
+    prepared = _prepare(M, steps, root=root)
+    system, N = prepared.system, prepared.design.horizon
+    run = f"{prepared.name}-0123abcd"  # the launcher's run ids have this length
+    release = Release(run=run, k=steps, iteration=0, x=np.ones(system.n), centres=np.ones(system.n),
+                      sizes=np.ones(system.M), assumed=np.full((system.M, 2), steps, dtype=np.int64))
+    plan_bytes = max(len(encode(PlanMessage(run=run, k=steps, iteration=0, sender=sub.name, status="solved",
+                                            z=np.ones((N + 1, sub.n)), v=np.ones((N, sub.m)), cost=1.0,
+                                            solve_time=1e-4, qp_iterations=25, sent_at=1.0)))
+                     for sub in system.subsystems)
+    neighbours = [[j for j in system.neighbours[i] if j != i] for i in range(system.M)]
+    return FloorSpec(M=M, steps=steps, neighbours=neighbours, release_bytes=len(encode(release)),
+                     plan_bytes=plan_bytes, compute_us=compute_us, topology=default_topology(M))
+
+
+def run_floor(M: int, steps: int, compute_us: float, root: Path = Path("."), timeout: float = 900) -> dict:
+    """The floor of a run of M agents: :func:`floor_spec` measured by :func:`dmpc.bench_floor.measure`."""
+    from dmpc.bench_floor import measure
+
+    return measure(floor_spec(M, steps, compute_us, root), timeout)
+
+
+def run_against_floor(M: int, steps: int, compute_us: float, workdir: Path, root: Path = Path("."),
+                      timeout: float = 900) -> dict:
+    """:func:`run_multiprocess` with the floor measured just before it, and the ratios of the two.
+
+    Adds ``floor`` (the floor's figures) and ``over_floor_p50``, ``over_floor_p99`` (step median
+    and p99 over the floor's) to the run's figures.
+    """
+    floor = run_floor(M, steps, compute_us, root, timeout)
+    result = run_multiprocess(M, steps, workdir, root, timeout)
+    result["floor"] = floor
+    if result.get("completed") and floor.get("completed"):
+        result["over_floor_p50"] = result["step_ms_p50"] / floor["step_ms_p50"]
+        result["over_floor_p99"] = result["step_ms_p99"] / floor["step_ms_p99"]
+    return result
+
+
 def _sample_memory(out: Path, peak: dict) -> None:
     try:
         pids = json.loads((out / "processes.json").read_text())
@@ -245,21 +290,50 @@ def run_central_cvxpy(M: int, steps: int, root: Path = Path(".")) -> dict:
 
 
 # ---------------------------------------------------------------------------- design
-def design_scaling(M: int, root: Path = Path(".")) -> dict:
+def design_scaling(M: int, root: Path = Path("."), compare: bool = False) -> dict:
+    """The offline design of the chain of M subsystems (LMI gains, horizon 10), timed part by part.
+
+    ``lmi_s``: the gains (LMI (11) and their verification); ``terminal_set_s``: X^f;
+    ``start_check_s``: the start's feasibility LP at the given horizon; ``design_s``: all of
+    :func:`dmpc.runtime.setup.design_for`, sigma0 and beta0 included. With ``compare``, X^f is also
+    computed with one LP over the whole set per test (``terminal_set_plain_s``) and compared with
+    the set from LPs on each row's neighbourhood (``same_omega``: the same rows to 1e-12;
+    ``same_sigma0``: sigma(alpha0) equal to 1e-12).
+    """
     from dmpc.design.gains import lmi_gains
-    from dmpc.design.terminal_set import maximal_admissible_set
-    from dmpc.scenario import build_system, load_scenario
+    from dmpc.design.terminal_set import LOCAL_ABOVE, maximal_admissible_set
+    from dmpc.runtime.horizon import StartCheck
+    from dmpc.runtime.setup import protocol_options
+    from dmpc.scenario import alpha0_vector, build_system, load_scenario
 
     path, overrides = chain_overrides(M, 1)
     overrides["design.gains"] = "lmi"
-    system = build_system(load_scenario(root / path, overrides))
+    scenario = load_scenario(root / path, overrides)
+    system = build_system(scenario)
     t0 = time.perf_counter()
     gains = lmi_gains(system)
     t1 = time.perf_counter()
     terminal = maximal_admissible_set(system, gains.K)
     t2 = time.perf_counter()
-    return {"M": M, "lmi_s": t1 - t0, "terminal_set_s": t2 - t1, "omega_rows": terminal.rows,
-            "t_star": terminal.t_star}
+    alpha0 = alpha0_vector(scenario, system)
+    sigma0 = terminal.sigma(alpha0)
+    beta0 = scenario.terminal.beta0 if scenario.terminal.beta0 != "auto" else 0.9 * sigma0
+    check = StartCheck(system, gains, terminal, alpha0=alpha0, beta0=beta0, method=scenario.options.method,
+                       coupling=scenario.options.coupling, tube=scenario.options.tube, protocol=protocol_options(scenario))
+    design = check.checked(scenario.horizon)
+    t3 = time.perf_counter()
+    result = {"M": M, "lmi_s": t1 - t0, "terminal_set_s": t2 - t1, "start_check_s": t3 - t2, "design_s": t3 - t0,
+              "omega_rows": terminal.rows, "t_star": terminal.t_star, "sigma0": sigma0,
+              "start_feasible": bool((design.start or {}).get("centrally_feasible"))}
+    if compare:
+        t4 = time.perf_counter()
+        plain = maximal_admissible_set(system, gains.K, local=False)
+        result["terminal_set_plain_s"] = time.perf_counter() - t4
+        local = terminal if system.n > LOCAL_ABOVE else maximal_admissible_set(system, gains.K, local=True)
+        result["same_omega"] = bool(plain.omega.shape == local.omega.shape
+                                    and np.abs(plain.omega - local.omega).max() <= 1e-12)
+        result["same_sigma0"] = bool(abs(plain.sigma(alpha0) - local.sigma(alpha0)) <= 1e-12)
+    return result
 
 
 def workdir() -> tempfile.TemporaryDirectory:

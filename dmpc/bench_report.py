@@ -12,9 +12,10 @@ from dmpc.console import stderr_console
 
 FULL = {"qp_horizons": [5, 10, 20], "qp_repeat": 20,
         "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
-        "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128]}
-QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 100)], "baselines": [4], "baseline_steps": 30,
-         "design": [4, 8]}
+        "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
+        "design_compare": 256}
+QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
+         "design": [4, 8], "design_compare": 8}
 
 
 def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
@@ -33,8 +34,9 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
         for N in plan["qp_horizons"]:
             results["qp"].append(bench.qp_solve_times(N, plan["qp_repeat"], root))
             step(f"QP N={N}")
+        qp10 = next((q for q in results["qp"] if q["N"] == 10), None) or bench.qp_solve_times(10, 1, root)
         for M, steps in plan["runtime"]:
-            results["runtime"].append(bench.run_multiprocess(M, steps, Path(tmp), root))
+            results["runtime"].append(bench.run_against_floor(M, steps, qp10["us_p50"], Path(tmp), root))
             step(f"multi-process M={M}")
         for M in plan["baselines"]:
             results["inprocess"].append(bench.run_inprocess(M, plan["baseline_steps"], root))
@@ -44,7 +46,7 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
             results["central_cvxpy"].append(bench.run_central_cvxpy(M, plan["baseline_steps"], root))
             step(f"centralised CVXPY M={M}")
         for M in plan["design"]:
-            results["design"].append(bench.design_scaling(M, root))
+            results["design"].append(bench.design_scaling(M, root, compare=M <= plan["design_compare"]))
             step(f"design M={M}")
     results["seconds"] = time.monotonic() - started
     results["headline"] = headline(results)
@@ -55,10 +57,15 @@ def headline(results: dict) -> dict:
     qp10 = next((q for q in results["qp"] if q["N"] == 10), None)
     m4 = next((r for r in results["runtime"] if r["M"] == 4 and r.get("completed")), None)
     done = [r["M"] for r in results["runtime"] if r.get("completed")]
+    floor = m4.get("floor") if m4 and m4.get("floor", {}).get("completed") else None
     return {
         "qp_solve_us_p50": qp10["us_p50"] if qp10 else None,
         "step_ms_p50_m4": m4["step_ms_p50"] if m4 else None,
         "step_ms_p99_m4": m4["step_ms_p99"] if m4 else None,
+        "floor_step_ms_p50_m4": floor["step_ms_p50"] if floor else None,
+        "floor_step_ms_p99_m4": floor["step_ms_p99"] if floor else None,
+        "step_over_floor_p50_m4": m4.get("over_floor_p50") if m4 else None,
+        "step_over_floor_p99_m4": m4.get("over_floor_p99") if m4 else None,
         "rss_mb_per_agent": max((r["rss_mb_per_agent"] for r in results["runtime"] if r.get("rss_mb_per_agent")),
                                 default=None),
         "max_agents_run": max(done) if done else 0,
@@ -80,6 +87,13 @@ def targets(results: dict) -> list[tuple[str, str, str]]:
         m4["step_ms_p50"] <= 1 if m4 else None)
     row("M = 4 lockstep step: p99 <= 3 ms", f"{m4['step_ms_p99']:.2f} ms" if m4 else "-",
         m4["step_ms_p99"] <= 3 if m4 else None)
+    ratio50, ratio99 = (m4.get("over_floor_p50"), m4.get("over_floor_p99")) if m4 else (None, None)
+    row("M = 4 lockstep step: median <= 1.5x the bus floor's (same run)",
+        f"{ratio50:.2f}x ({m4['step_ms_p50']:.2f} / {m4['floor']['step_ms_p50']:.2f} ms)" if ratio50 else "-",
+        ratio50 <= 1.5 if ratio50 else None)
+    row("M = 4 lockstep step: p99 <= 2x the bus floor's p99 (same run)",
+        f"{ratio99:.2f}x ({m4['step_ms_p99']:.2f} / {m4['floor']['step_ms_p99']:.2f} ms)" if ratio99 else "-",
+        ratio99 <= 2 if ratio99 else None)
     by_m = {r["M"]: r for r in results["runtime"]}
     for M, what in ((64, "runs to completion"), (128, "attempted")):
         r = by_m.get(M)
@@ -124,21 +138,30 @@ def markdown(results: dict, command: str) -> str:
              "| N | solves | median (us) | p99 (us) |", "|---|---|---|---|"]
     lines += [f"| {q['N']} | {q['solves']} | {q['us_p50']:.1f} | {q['us_p99']:.1f} |" for q in results["qp"]]
     lines += ["", "## Multi-process lockstep (`dmpc run`, all processes on this machine)", "",
-              "Step time: release of step k to its completion on the plant's clock, k = 0 (Jacobi to convergence) "
-              "excluded. Bus share: step time minus the slowest agent's QP time. Memory: peak while stepping.", "",
+              "Step time: from the plant starting to send the release of step k to the step's completion, on the "
+              "plant's clock, k = 0 (Jacobi to convergence) excluded. Bus share: step time minus the slowest agent's QP "
+              "time. Memory: peak while stepping.", "",
+              "Floor: a bare Zenoh lockstep loop measured just before each run (`dmpc.bench_floor`): the same "
+              "processes, topology and neighbours, payloads of the run's release and plan sizes, one release "
+              "broadcast per step, and the QP's median (N = 10) burnt as CPU by each agent; nothing decoded, "
+              "checked or recorded. x floor: the run's step figure over the floor's.", "",
               "Topology: `mesh` (agents peer to peer) up to 64 agents, `star` (agents as clients of the "
               "plant's router) above; wall: the whole `dmpc run`, start-up included.", "",
-              "| M | topology | steps | wall (s) | step median (ms) | step p99 (ms) | bus share | RSS/agent (MB) | "
-              "PSS/agent (MB) | RSS total (MB) | PSS total (MB) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| M | topology | steps | wall (s) | step median (ms) | step p99 (ms) | floor median (ms) | floor p99 (ms) | "
+              "x floor median | x floor p99 | bus share | RSS/agent (MB) | PSS/agent (MB) | RSS total (MB) | "
+              "PSS total (MB) |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["runtime"]:
+        floor = r.get("floor") if r.get("floor", {}).get("completed") else {}
         if r.get("completed"):
             lines.append(f"| {r['M']} | {r.get('topology', '-')} | {r['steps']} | {r['wall_s']:.0f} | "
-                         f"{r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | "
+                         f"{r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | {_fmt(floor.get('step_ms_p50'))} | "
+                         f"{_fmt(floor.get('step_ms_p99'))} | {_fmt(r.get('over_floor_p50'))} | "
+                         f"{_fmt(r.get('over_floor_p99'))} | "
                          f"{r['bus_share_p50']:.0%} | {_fmt(r['rss_mb_per_agent'])} | {_fmt(r['pss_mb_per_agent'])} | "
                          f"{r['rss_mb_total']:.0f} | {r['pss_mb_total']:.0f} |")
         else:
             reason = " ".join(str(r.get("reason", "?")).split())[:160].replace("|", "/")
-            lines.append(f"| {r['M']} | {r.get('topology', '-')} | did not complete: {reason} | | | | | | | | |")
+            lines.append(f"| {r['M']} | {r.get('topology', '-')} | did not complete: {reason} | | | | | | | | | | | | |")
     lines += ["", "## Side by side: the same closed loop, per-step time and closed-loop cost", "",
               "| M | DMPC multi-process (ms) | DMPC in-process (ms) | centralised OSQP (ms) | centralised CVXPY (ms) | "
               "cost DMPC | cost centralised OSQP | cost CVXPY | multi-process / CVXPY | multi-process / OSQP |",
@@ -152,10 +175,17 @@ def markdown(results: dict, command: str) -> str:
                      f"{cc['step_ms_p50']:.3g} | {ip['closed_loop_cost']:.4g} | {co['closed_loop_cost']:.4g} | "
                      f"{cc['closed_loop_cost']:.4g} | {_fmt(mp_ms / cc['step_ms_p50'] if mp_ms else None)} | "
                      f"{_fmt(mp_ms / co['step_ms_p50'] if mp_ms else None)} |")
-    lines += ["", "## Offline design against M (chain family, LMI gains)", "",
-              "| M | LMI (s) | X^f (s) | rows of Omega | t* |", "|---|---|---|---|---|"]
-    lines += [f"| {d['M']} | {d['lmi_s']:.2f} | {d['terminal_set_s']:.2f} | {d['omega_rows']} | {d['t_star']} |"
-              for d in results["design"]]
+    lines += ["", "## Offline design against M (chain family, LMI gains, horizon 10)", "",
+              "LMI: gains and their check; X^f: the terminal set (redundancy decided on each row's neighbourhood); "
+              "start LP: the start's feasibility at the horizon; design: all of it. X^f plain: one LP over the whole "
+              "set per test (the earlier method), with its set compared to the other's.", "",
+              "| M | LMI (s) | X^f (s) | start LP (s) | design (s) | rows of Omega | t* | sigma0 | X^f plain (s) | "
+              "same Omega, sigma0 |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for d in results["design"]:
+        same = "-" if "same_omega" not in d else ("yes" if d["same_omega"] and d["same_sigma0"] else "NO")
+        lines.append(f"| {d['M']} | {d['lmi_s']:.2f} | {d['terminal_set_s']:.2f} | {_fmt(d.get('start_check_s'))} | "
+                     f"{_fmt(d.get('design_s'))} | {d['omega_rows']} | {d['t_star']} | {_fmt(d.get('sigma0'), 6)} | "
+                     f"{_fmt(d.get('terminal_set_plain_s'))} | {same} |")
     lines += ["", "## Targets", "", "Step ratios are DMPC multi-process time over the reference's (below 1 is faster).", "",
               "| target | measured | met |", "|---|---|---|"]
     lines += [f"| {t} | {m} | {ok} |" for t, m, ok in targets(results)]
@@ -195,6 +225,8 @@ def plot(results: dict, folder: Path) -> list[Path]:
         d = results["design"]
         ax.loglog([r["M"] for r in d], [r["lmi_s"] for r in d], "o-", label="LMI (Clarabel)")
         ax.loglog([r["M"] for r in d], [r["terminal_set_s"] for r in d], "s-", label="X^f (Gilbert-Tan, HiGHS)")
+        if all("design_s" in r for r in d):
+            ax.loglog([r["M"] for r in d], [r["design_s"] for r in d], "^-", label="whole design")
         ax.set_xlabel("subsystems M")
         ax.set_ylabel("seconds")
         ax.set_title("Offline design time against M")

@@ -1,9 +1,9 @@
 """One QP over the whole coupled system (problem (9) without tubes), on the shared MPC QP.
 
 Used to seed k = 0 when the first Jacobi round is infeasible from decoupled rollouts
-(ALGORITHM.md 3.4), and as the optimality reference. The terminal constraint is either the
-per-agent boxes ``|z_i(N) - alpha_i| <= beta`` (what the distributed QPs impose together) or
-X^f itself, ``Omega z(N) <= 1``.
+(docs/algorithm.md, "Online step k, agent i", item 4), and as the optimality reference. The
+terminal constraint is either the per-agent boxes ``|z_i(N) - alpha_i| <= beta`` (what the
+distributed QPs impose together) or X^f itself, ``Omega z(N) <= 1``.
 """
 from __future__ import annotations
 

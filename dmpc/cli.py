@@ -11,12 +11,12 @@ from typing import Annotated, Optional
 import click
 import typer
 
+from dmpc import console
 from dmpc.console import error_line, silence_c_stdout, stdout_console
 from dmpc.design import DesignError
-from dmpc.records.run_folder import RunFolderError
-
-EXIT_INPUT = 2
-EXIT_INTERRUPTED = 130
+from dmpc.exit_codes import EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
+from dmpc.plant.models import PlantModelError
+from dmpc.records.run_folder import STEP_LOG, RecordWriteError, RunFolderError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Distributed MPC with time-varying terminal sets: design, simulate, run over Zenoh.")
@@ -25,6 +25,7 @@ app.add_typer(scenario_app, name="scenario")
 
 ScenarioArg = Annotated[Path, typer.Argument(help="Scenario YAML file.", show_default=False)]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override a field: KEY=VALUE, e.g. family.M=16 (repeatable).")]
+ModelOpt = Annotated[Optional[str], typer.Option("--model", help="Your own plant: module:function or path/file.py:function, a function (x, u, k) -> x_next that replaces the linear plant (a flag only: never read from a scenario file).", show_default=False)]
 MethodOpt = Annotated[Optional[str], typer.Option("--method", help="Control method: tv-box (default), tv-box-opt, fixed-box, ellipsoid, ellipsoid-adaptive, centralized (sets options.method).", show_default=False)]
 
 
@@ -44,6 +45,19 @@ def _with_method(overrides: list[str] | None, method: str | None) -> list[str]:
             raise InputError(f"--method: {exc}") from None
         extra.append(f"options.method={method}")
     return extra
+
+
+def _with_model(prepared, model: str | None):
+    """``prepared`` with the plant function of ``--model`` (InputError if it cannot be imported)."""
+    if model is None:
+        return prepared
+    from dmpc.runtime.plant_setup import load_plant_function, with_plant_function
+
+    try:
+        function, name = load_plant_function(model)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    return with_plant_function(prepared, function, name)
 
 
 def _default_out(out: Path | None, scenario_name: str) -> Path:
@@ -109,19 +123,27 @@ def simulate(scenario: ScenarioArg,
              steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps to run (default: the scenario's).")] = None,
              set_: SetOpt = None,
              quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
-             method: MethodOpt = None) -> None:
+             method: MethodOpt = None, model: ModelOpt = None) -> None:
     """Run every agent, the barrier and the plant in this process (in-memory bus)."""
     from dmpc.runtime.inprocess import record_run
     from dmpc.records.report import print_summary
     from dmpc.records.session import RunRecorder
 
-    prepared = _prepare(scenario, _with_method(set_, method), steps)
+    prepared = _with_model(_prepare(scenario, _with_method(set_, method), steps), model)
     out = _default_out(out, prepared.name)
     with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
         summary, failure = record_run(prepared, recorder)
     print_summary(summary, out)
+    raise typer.Exit(_run_exit_code(summary, failure))
+
+
+def _run_exit_code(summary: dict | None, failure: str = "") -> int:
+    """1 when the run failed to run, 3 when it ran but its verdict is failed, else 0."""
     if failure:
-        raise typer.Exit(1)
+        return EXIT_FAILED
+    if summary is not None and summary.get("verdict") == "failed":
+        return EXIT_VERDICT
+    return EXIT_OK
 
 
 # ---------------------------------------------------------------------------- network processes
@@ -289,7 +311,7 @@ def plant(scenario: ScenarioArg,
           multicast: MulticastOpt = False, lease: LeaseOpt = None, zenoh_config: ZenohConfigOpt = None,
           quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar and no summary table.")] = False,
           tls: TlsOpt = None, delay: DelayOpt = None, jitter: JitterOpt = None, loss: LossOpt = None, seed: SeedOpt = None,
-          deadline: DeadlineOpt = None, set_: SetOpt = None) -> None:
+          deadline: DeadlineOpt = None, set_: SetOpt = None, model: ModelOpt = None) -> None:
     """Run the plant and step barrier: wait for every agent, step, record."""
     from dmpc.plant.process import run_plant
     from dmpc.runtime.memory import settle_after_startup
@@ -303,6 +325,7 @@ def plant(scenario: ScenarioArg,
     set_ = _fault_overrides(set_, delay, jitter, loss, seed, deadline)
     prepared = _prepare_for_process(scenario, set_, design_file, steps)
     _require_agents(prepared, "plant")
+    prepared = _with_model(prepared, model)
     rid = _run_id(run_id, prepared)
     bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout, tls, "plant")
     bus = _with_faults(bus, prepared, "plant")
@@ -405,7 +428,7 @@ def certs(directory: Annotated[Path, typer.Argument(help="Directory to write (cr
           days: Annotated[int, typer.Option("--days", min=1, help="Validity of the certificates in days.")] = 365,
           force: Annotated[bool, typer.Option("--force", help="Replace certificates already in DIRECTORY.")] = False,
           set_: SetOpt = None) -> None:
-    """Make a CA, a certificate and key per role (router, plant, agent-<name>) and acl.json."""
+    """Make a CA, a certificate and key per role (router, plant, agent-<name>, observer) and acl.json."""
     from dmpc.bus import keys
     from dmpc.scenario import build_system
     from dmpc.security.certs import DEFAULT_HOSTS, make_run_security
@@ -444,7 +467,7 @@ def _run_centralized_here(prepared, out: Path | None, quiet: bool, network_flags
     with RunRecorder(out, prepared, show_progress=not quiet) as recorder:
         summary, failure = record_run(prepared, recorder)
     print_summary(summary, out)
-    raise typer.Exit(1 if failure else 0)
+    raise typer.Exit(_run_exit_code(summary, failure))
 
 
 @app.command()
@@ -457,10 +480,16 @@ def run(scenario: ScenarioArg,
         secure: Annotated[bool, typer.Option("--secure", help="Make certificates and access control in the run folder (tls/) and run every link over TLS with them.")] = False,
         topology: Annotated[Optional[str], typer.Option("--topology", help="mesh (agents link to each other) or star (through the plant's router); default: mesh up to 64 agents, star above.")] = None,
         delay: DelayOpt = None, jitter: JitterOpt = None, loss: LossOpt = None, seed: SeedOpt = None,
-        deadline: DeadlineOpt = None, set_: SetOpt = None, method: MethodOpt = None) -> None:
+        deadline: DeadlineOpt = None, set_: SetOpt = None, method: MethodOpt = None, model: ModelOpt = None,
+        watch: Annotated[bool, typer.Option("--watch", help="Serve a live view of the run on a local web page (the URL is printed); it stays up after the run until Ctrl-C.")] = False,
+        restart: Annotated[int, typer.Option("--restart", min=0, help="Start a crashed agent again, up to N times per agent (backoff 0.5 s, doubled each time); it rejoins the run.")] = 0,
+        fail_fast: Annotated[bool, typer.Option("--fail-fast", help="Stop the run when an agent is lost for good (default: its fallback applies and the run goes on).")] = False,
+        lease: LeaseOpt = None) -> None:
     """Start the plant and every agent as processes on this machine and wait for the run.
 
-    ``--method centralized`` has no agents: it runs its one QP per step in this process.
+    A crashed agent is a lost agent: its fallback applies and the run goes on (``--restart`` starts
+    it again, ``--fail-fast`` stops the run instead). ``--method centralized`` has no agents: it
+    runs its one QP per step in this process.
     """
     import secrets
 
@@ -472,10 +501,13 @@ def run(scenario: ScenarioArg,
         raise InputError("--tls and --secure exclude each other (--secure makes its own certificates)")
     prepared = prepare(_load(scenario, _with_method(_fault_overrides(set_, delay, jitter, loss, seed, deadline), method),
                              steps))
+    prepared = _with_model(prepared, model)
     if prepared.method == "centralized":
         network = {"--tls": tls is not None, "--secure": secure, "--topology": topology is not None,
                    "--run-id": run_id is not None, "--delay": delay is not None, "--jitter": jitter is not None,
                    "--loss": loss is not None, "--deadline": deadline is not None}
+        network["--watch"] = watch
+        network.update({"--restart": restart > 0, "--fail-fast": fail_fast, "--lease": lease is not None})
         _run_centralized_here(prepared, out, quiet, [flag for flag, given in network.items() if given])
     for role in ["plant"] + [f"agent-{name}" for name in prepared.names] if tls is not None else []:
         _security(tls, role)  # every file present before any process starts
@@ -484,15 +516,28 @@ def run(scenario: ScenarioArg,
     topology = topology or default_topology(prepared.system.M)
     out = _default_out(out, prepared.name)
     rid = _run_id(run_id or f"{prepared.name}-{secrets.token_hex(4)}", prepared)
+    watcher = None
+    if watch:
+        from dmpc.watch.attach import Watcher
+
+        if tls is not None:
+            _security(tls, "observer")
+        watcher = Watcher()
+    from dmpc.runtime.supervisor import RestartPolicy
+
     result = launch(prepared, out, rid, startup_timeout=startup_timeout, show_progress=not quiet,
-                    tls_dir=tls, secure=secure, topology=topology)
+                    tls_dir=tls, secure=secure, topology=topology, on_ready=watcher.start if watcher else None,
+                    plant_model=model, policy=RestartPolicy(restart, fail_fast),
+                    extra_args=["--lease", str(lease)] if lease is not None else None)
     if result.summary is not None:
         print_summary(result.summary, out)
     if result.code == EXIT_INTERRUPTED:
         error_line(result.message)
     elif result.code != 0:
         print(f"error: {result.message}", file=sys.stderr)  # keeps the children's log tails on their lines
-    raise typer.Exit(result.code)
+    if watcher is not None:
+        watcher.after_run(interrupted=result.code == EXIT_INTERRUPTED)
+    raise typer.Exit(result.code if result.code != 0 else _run_exit_code(result.summary))
 
 
 @app.command()
@@ -537,6 +582,67 @@ def report(run_dir: Annotated[Path, typer.Argument(help="A run folder, or a fold
         print(path)
 
 
+@app.command()
+def watch(run_dir: Annotated[Optional[Path], typer.Argument(help="A run folder: replayed, or followed while it is written; with --connect, where the run's description and summary are read.", show_default=False)] = None,
+          connect: ConnectOpt = None,
+          run_id: Annotated[Optional[str], typer.Option("--run-id", help="The run to watch over the bus (needed with --connect).")] = None,
+          port: Annotated[int, typer.Option("--port", min=0, max=65535, help="Port of the web page (0: any free port).")] = 0,
+          listen: Annotated[str, typer.Option("--listen", help="Address the web page listens on (loopback by default; 0.0.0.0 for every interface).")] = "127.0.0.1",
+          tls: Annotated[Optional[Path], typer.Option("--tls", help="Certificate directory from 'dmpc certs': connect over TLS as the read-only role 'observer'.")] = None) -> None:
+    """Serve a web page that shows a run: live over Zenoh (--connect, --run-id) or from its run folder."""
+    from dmpc.runtime.signals import sigterm_as_interrupt
+    from dmpc.watch.folder import FolderError, FolderFeed
+    from dmpc.watch.state import RunState
+
+    if run_dir is None and not connect:
+        raise InputError("give a run folder to replay, or --connect ENDPOINT --run-id ID to watch a live run")
+    if connect and not run_id:
+        raise InputError("--connect needs --run-id: the id of the run to watch (the plant's --run-id, by default "
+                         "its scenario's name)")
+    if tls is not None and not connect:
+        raise InputError("--tls applies to --connect only")
+    if run_dir is not None and not run_dir.is_dir():
+        raise InputError(f"{run_dir}: no such folder")
+    if run_id is not None:
+        run_id = _run_id(run_id, None)
+    source = (f"live over Zenoh from {', '.join(connect)}" if connect else f"run folder {run_dir}")
+    if connect and run_dir is not None:
+        source += f", run folder {run_dir}"
+    state = RunState(source, run_id or "")
+    feed = None
+    if run_dir is not None:
+        feed = FolderFeed(run_dir, state, steps=not connect)
+        try:
+            feed.load_meta()
+        except FolderError as exc:
+            raise InputError(str(exc)) from None
+        feed.poll()
+    observer = None
+    if connect:
+        from dmpc.watch.observer import BusObserver
+
+        tls_files, acl = _security(tls, "observer")
+        try:
+            observer = BusObserver(state, run_id, list(connect), tls=tls_files, acl=acl)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+    from dmpc.watch.server import WatchServer, announce
+
+    try:
+        server = WatchServer(state, live=observer is not None, address=listen, port=port,
+                             poll=feed.poll if feed else None)
+    except OSError as exc:
+        raise InputError(f"--listen {listen} --port {port}: cannot serve the page ({exc.strerror or exc})") from None
+    sigterm_as_interrupt()
+    if observer is not None:
+        observer.start()
+    try:
+        server.serve(on_ready=announce)
+    finally:
+        if observer is not None:
+            observer.close()
+
+
 MethodsOpt = Annotated[Optional[list[str]], typer.Option("--methods", help="Methods to run (default: all): --methods tv-box centralized ...", show_default=False)]
 
 
@@ -555,7 +661,7 @@ def _table(title: str, header: list[str], rows: list[list[str]]):
 
     table = Table(title=title, box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
     for name in header:
-        table.add_column(name, justify="left" if name == "method" else "right", no_wrap=True)
+        table.add_column(name, justify="left" if name in ("method", "verdict") else "right", no_wrap=True)
     for row in rows:
         table.add_row(*row)
     return table
@@ -582,6 +688,10 @@ def compare(scenario: ScenarioArg,
         console.print(f"closed-loop cost tv-box / centralized = {ratio:.4f}")
     console.print(f"comparison: {out / COMPARISON}")
     _draw_comparison_figures(out)
+    failed = [m for m, e in data["methods"].items() if e.get("verdict") == "failed"]
+    if failed:
+        error_line(f"verdict failed for {', '.join(failed)} (reasons in {', '.join(str(out / m / 'summary.json') for m in failed)})")
+        raise typer.Exit(EXIT_VERDICT)
 
 
 def _draw_comparison_figures(out: Path) -> None:
@@ -611,8 +721,6 @@ def roa(scenario: ScenarioArg,
         set_: SetOpt = None,
         quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False) -> None:
     """Region of attraction: per method and horizon, the fraction of sampled x(0) feasible at k = 0 and converging."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
     from dmpc.console import stderr_console
     from dmpc.evaluation.roa import (ROA_FILE, ROA_LEGEND, ROA_PLOT, plot_roa, region_of_attraction, roa_header,
                                      roa_rows)
@@ -633,15 +741,16 @@ def roa(scenario: ScenarioArg,
     out = out or _default_out(None, f"roa-{scn.name}")
     claim_folder(out, ROA_FILE, "a region-of-attraction table")
     progress = None
-    advance = None
     if not quiet:
-        progress = Progress(TextColumn("[bold]roa"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                            TimeRemainingColumn(), console=stderr_console(), transient=True)
-        task = progress.add_task("roa", total=len(methods) * len(horizons) * samples)
-        advance = lambda: progress.advance(task)  # noqa: E731
+        from dmpc.evaluation.run_progress import RunProgress
+
+        plan = (f"{len(methods)} method{'s' * (len(methods) > 1)} x {len(horizons)} horizon"
+                f"{'s' * (len(horizons) > 1)} x {samples} sample{'s' * (samples > 1)}, up to {scn.steps} steps each")
+        progress = RunProgress("roa", len(methods) * len(horizons) * samples, plan, stderr_console())
         progress.start()
     try:
-        data = region_of_attraction(scn, sorted(horizons), methods, samples, seed, box, advance)
+        data = region_of_attraction(scn, sorted(horizons), methods, samples, seed, box,
+                                    progress.advance if progress is not None else None)
     finally:
         if progress is not None:
             progress.stop()
@@ -677,6 +786,15 @@ def _expand_multi_values(args: list[str]) -> list[str]:
     return out
 
 
+def _report_plant_error(exc: Exception) -> None:
+    """The traceback of the user's plant function (not of dmpc's), then one error line."""
+    import traceback
+
+    if exc.__cause__ is not None:
+        sys.stderr.write("".join(traceback.format_exception(exc.__cause__)))
+    error_line(f"{exc} (the run stopped; the steps before it are in the run folder)")
+
+
 def _is_scenario_error(exc: Exception) -> bool:
     """ScenarioError, checked lazily: the scenario package (pydantic) is not always loaded."""
     module = sys.modules.get("dmpc.scenario.load")
@@ -685,6 +803,9 @@ def _is_scenario_error(exc: Exception) -> bool:
 
 def main() -> None:
     """Console entry point: maps expected errors to one line and exit code 2."""
+    from dmpc.runtime import signals
+
+    signals.sigterm_as_interrupt()  # from the start: SIGTERM during imports or the design ends the process cleanly too
     silence_c_stdout()
     code = _run_app()
     zenoh_bus = sys.modules.get("dmpc.bus.zenoh_bus")
@@ -702,7 +823,14 @@ def _run_app() -> int:
     try:
         # without standalone mode, click returns the code of typer.Exit instead of raising it
         code = app(args=_expand_multi_values(sys.argv[1:]), standalone_mode=False)
-        return code if isinstance(code, int) else 0
+        code = code if isinstance(code, int) else 0
+        if code == EXIT_INTERRUPTED and not console.errors_printed:
+            # typer returns Ctrl-C and SIGTERM as a bare exit code 130
+            error_line("interrupted")
+        return code
+    except RecordWriteError as exc:  # during the run: the completed steps are in the step log
+        error_line(f"{exc}; the run stopped, its completed steps are kept in {STEP_LOG}")
+        return EXIT_FAILED
     except (DesignError, RunFolderError, InputError) as exc:
         error_line(str(exc))
         return EXIT_INPUT
@@ -717,6 +845,9 @@ def _run_app() -> int:
     except click.ClickException as exc:  # usage errors: unknown option, missing argument, bad value
         exc.show()
         return exc.exit_code
+    except PlantModelError as exc:
+        _report_plant_error(exc)
+        return EXIT_FAILED
     except Exception as exc:
         if not _is_scenario_error(exc):
             raise

@@ -7,6 +7,9 @@ import sys
 from rich.console import Console
 
 _silenced = False
+errors_printed = 0
+"""How many ``error:`` lines this process has printed (a command that said why it stopped
+is not followed by a generic line)."""
 
 
 def silence_c_stdout() -> None:
@@ -31,8 +34,13 @@ def silence_c_stdout() -> None:
         pass  # no fd 1 to redirect (embedded use): leave it as it is
 
 
+PIPE_WIDTH = 160
+"""Columns of tables written to a pipe or file (a terminal gives its own width)."""
+
+
 def stdout_console() -> Console:
-    return Console(file=sys.stdout, highlight=False, soft_wrap=True)
+    width = None if sys.stdout.isatty() else PIPE_WIDTH
+    return Console(file=sys.stdout, highlight=False, soft_wrap=True, width=width)
 
 
 def stderr_console() -> Console:
@@ -41,5 +49,7 @@ def stderr_console() -> Console:
 
 def error_line(message: str) -> None:
     """Print ``error: message`` on stderr as a single line."""
+    global errors_printed
     text = " ".join(str(message).split())
     print(f"error: {text}", file=sys.stderr, flush=True)
+    errors_printed += 1

@@ -141,12 +141,27 @@ def _check_run_folder(path: Path) -> None:
     if not any((path / name).exists() for name in markers):
         raise ReportError(f"{path} is not a run folder (no trajectory.npz, scenario.yaml or design.json) "
                           f"nor a comparison folder (no {COMPARISON_FILE})")
-    if not (path / "trajectory.npz").is_file():
+    if not (path / "trajectory.npz").is_file() and not (path / "steps.jsonl").is_file():
         raise ReportError(f"{path} has no trajectory.npz: the run was not completed or is still running "
                           "(it is written at the end of a run)")
 
 
-def _load_arrays(path: Path) -> dict[str, np.ndarray]:
+def _load_arrays(path: Path, notes: list[str] | None = None) -> dict[str, np.ndarray]:
+    """trajectory.npz, or (a run that ended before writing it) the arrays rebuilt from steps.jsonl,
+    said in ``notes``."""
+    if not (path / "trajectory.npz").is_file():
+        from dmpc.records.step_log import arrays_from_log, read_step_log
+
+        try:
+            log = read_step_log(path / "steps.jsonl")
+        except (OSError, ValueError) as exc:
+            raise ReportError(f"{path / 'steps.jsonl'} cannot be read ({exc})") from None
+        if not log.steps:
+            raise ReportError(f"{path} has no trajectory.npz and no completed step in steps.jsonl")
+        if notes is not None:
+            notes.append(f"{path}: no trajectory.npz (the run did not finish); drawn from the {len(log.steps)} "
+                         f"steps of steps.jsonl" + (f"; {log.note}" if log.partial else ""))
+        return arrays_from_log(log)
     try:
         with np.load(path / "trajectory.npz") as npz:
             arrays = {key: npz[key] for key in npz.files}
@@ -227,8 +242,8 @@ def _series(arrays: dict, key: str, length: int, fallback=None) -> np.ndarray:
     return out
 
 
-def load_run(path) -> RunData:
-    """Read one run folder.
+def load_run(path, notes: list[str] | None = None) -> RunData:
+    """Read one run folder (``notes`` gets what the reader had to work around).
 
     Parameters
     ----------
@@ -246,7 +261,7 @@ def load_run(path) -> RunData:
     """
     path = Path(path)
     _check_run_folder(path)
-    arrays = _load_arrays(path)
+    arrays = _load_arrays(path, notes)
     design = _read_json(path / "design.json") if (path / "design.json").is_file() else None
     summary = _read_json(path / "summary.json") if (path / "summary.json").is_file() else {}
     info = _structure_from_scenario(path) or _structure_from_design(design, path)
@@ -695,7 +710,7 @@ def _cost_label(method: str, entry: dict) -> str:
 
 
 # ----------------------------------------------------------------------------- entry points
-def draw_run(run_dir, fig_dir=None) -> list[Path]:
+def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path]:
     """Draw the five figures of one run folder.
 
     Parameters
@@ -710,7 +725,7 @@ def draw_run(run_dir, fig_dir=None) -> list[Path]:
     list of Path
         The five files, in figure order.
     """
-    run = load_run(run_dir)
+    run = load_run(run_dir, notes)
     folder = Path(fig_dir) if fig_dir is not None else run.path / "figures"
     plt = _pyplot()
     head = f"{run.scenario}, {run.method}"
@@ -829,4 +844,4 @@ def draw(path, fig_dir=None, notes: list[str] | None = None) -> list[Path]:
         raise ReportError(f"{path} does not exist")
     if is_comparison_folder(path):
         return draw_comparison(path, fig_dir, notes)
-    return draw_run(path, fig_dir)
+    return draw_run(path, fig_dir, notes)

@@ -1,4 +1,5 @@
-"""Plans, their shifted continuations and the coupling feed-forward (ALGORITHM.md 3.1-3.2, 3.7).
+"""Plans, their shifted continuations and the coupling feed-forward
+(docs/algorithm.md, "Online step k, agent i", items 1, 2 and 7).
 
 A plan made at step k' is ``z`` (N+1, n) and ``v`` (N, m). Beyond its horizon it is continued
 with the local terminal controller: z(N+q) = Gamma^q z(N), v(N-1+q) = K z(N-1+q), Gamma = A_ii + B_ii K_i.
@@ -65,6 +66,14 @@ def assumed_trajectory(plan: Plan | None, k: int, x_now: np.ndarray, N: int, Gam
     if plan is None:
         return k_rollout(x_now, N, Gamma, K)
     shift = k - plan.k
+    if shift == 1 and plan.v.shape[0] == N:  # the usual case, without building the continuation
+        zhat = np.empty((N, plan.z.shape[1]))
+        zhat[0] = x_now
+        zhat[1:] = plan.z[2:]
+        vhat = np.empty((N, plan.v.shape[1]))
+        vhat[:-1] = plan.v[1:]
+        vhat[-1:] = plan.z[N:N + 1] @ K.T
+        return zhat, vhat
     z, v = continued(plan, N + shift, Gamma, K)
     zhat = z[shift : shift + N].copy()
     zhat[0] = x_now
@@ -94,6 +103,14 @@ def candidate_plan(plan: Plan | None, k: int, x_now: np.ndarray | None, N: int, 
         z, v = k_rollout(x_now, N + 1, Gamma, K)
         return z, v[:N]
     shift = k - plan.k
+    if shift == 1 and plan.v.shape[0] == N:  # the usual case, without building the continuation
+        z = np.empty_like(plan.z, dtype=float)
+        z[:N] = plan.z[1:]
+        z[N] = Gamma @ plan.z[N]
+        v = np.empty_like(plan.v, dtype=float)
+        v[:-1] = plan.v[1:]
+        v[-1:] = plan.z[N:N + 1] @ K.T
+        return z, v
     z, v = continued(plan, shift + N, Gamma, K)
     return z[shift:], v[shift:]
 
@@ -111,9 +128,10 @@ def coupling_feedforward(A_blocks: list[np.ndarray], B_blocks: list[np.ndarray],
                          assumed: list[tuple[np.ndarray, np.ndarray]], N: int, n: int) -> np.ndarray:
     """c(t) = sum_j A_ij zhat_j(t) + B_ij vhat_j(t), shape (N, n).
 
-    ``A_blocks[q]``, ``B_blocks[q]`` and ``assumed[q]`` belong to the same neighbour j != i.
+    ``A_blocks[q]``, ``B_blocks[q]`` and ``assumed[q]`` belong to the same neighbour j != i; a
+    ``B_blocks[q]`` of None stands for zeros.
     """
     c = np.zeros((N, n))
     for Aij, Bij, (zhat, vhat) in zip(A_blocks, B_blocks, assumed):
-        c += zhat @ Aij.T + vhat @ Bij.T
+        c += zhat @ Aij.T if Bij is None else zhat @ Aij.T + vhat @ Bij.T
     return c

@@ -2,9 +2,9 @@
 
 Per step k it releases round 0 to every agent, collects their plans, runs further Jacobi rounds
 while the plans still move (k = 0: to convergence), then finalises the step: inputs (with the
-fallback of ALGORITHM.md 3.7 for missing or infeasible plans), alpha(k+1) = (A+BK) eta,
-beta(k+1) = sigma(alpha(k+1)) (or another method's terminal update, dmpc.methods.policy), the
-plant update and the step record.
+fallback of docs/algorithm.md, "Online step k, agent i", item 7, for missing, infeasible or
+refused plans), alpha(k+1) = (A+BK) eta, beta(k+1) = sigma(alpha(k+1)) (or another method's
+terminal update, dmpc.methods.policy), the plant update and the step record.
 
 Inputs are method calls (``start``, ``on_plan``, ``on_deadline``, ``on_agent_lost``,
 ``on_agent_back``); outputs are lists of actions for the hosting process to carry out.
@@ -21,11 +21,39 @@ from dmpc.design import Design
 from dmpc.mpc_qp import QPStatus, plan_cost
 from dmpc.plant.dynamics import Plant
 from dmpc.security.rejects import MAX_MAGNITUDE, magnitude
-from dmpc.system import CoupledSystem, project_onto
+from dmpc.system import CoupledSystem, LinearSet, project_onto
 from dmpc.trajectories import Plan, candidate_plan, shifted_input
 
 SOLVED_STATUSES = ("solved", "solved_inaccurate")
 KNOWN_STATUSES = frozenset(s.value for s in QPStatus)
+# A solved plan may leave U_i by this much times max(1, |bound|): OSQP solves to about 1e-7,
+# so an honest plan stays well inside, and anything beyond is refused.
+INPUT_TOLERANCE = 1e-6
+INPUT_REFUSED = "input outside U_i"
+
+
+_LIMITS: dict[int, tuple] = {}  # id(input set) -> (the set, H^T or None for a box, lower and upper limits)
+
+
+def _limits(input_set: LinearSet) -> tuple:
+    entry = _LIMITS.get(id(input_set))
+    if entry is None or entry[0] is not input_set:
+        H, lower, upper = input_set.H, input_set.lower, input_set.upper
+        box = H.shape[0] == H.shape[1] and np.array_equal(H, np.eye(H.shape[0]))
+        entry = (input_set, None if box else H.T, lower - INPUT_TOLERANCE * np.maximum(1.0, np.abs(lower)),
+                 upper + INPUT_TOLERANCE * np.maximum(1.0, np.abs(upper)))
+        _LIMITS[id(input_set)] = entry
+    return entry
+
+
+def input_excess(input_set: LinearSet, v: np.ndarray) -> float:
+    """How far the inputs ``v`` (one per row, shape (N, m_i)) leave ``input_set`` beyond
+    ``INPUT_TOLERANCE``; > 0 means refused. Infinite bounds never bind."""
+    _, HT, lower, upper = _limits(input_set)
+    Hv = v if HT is None else v @ HT
+    if Hv.size == 0:
+        return -math.inf
+    return float(max((Hv - upper).max(), (lower - Hv).max()))
 
 
 @dataclass(frozen=True)
@@ -145,6 +173,8 @@ class Coordinator:
         self._max_change = float("nan")
         self.rejected: dict[str, int] = {}
         self.duplicates = 0
+        self.inputs_refused: dict[str, int] = {}
+        self._refused: dict[int, PlanMessage] = {}  # per agent: its last plan refused (kept until replaced)
         self._provided: dict[int, Plan] = {}
         self._note = self.terminal.note
 
@@ -163,11 +193,14 @@ class Coordinator:
         """Actions that release step 0, round 0."""
         return self._release_round()
 
-    def on_plan(self, msg: PlanMessage) -> list:
-        """A plan arrived; returns the actions it triggers (possibly none)."""
+    def on_plan(self, msg: PlanMessage, checked: bool = False) -> list:
+        """A plan arrived; returns the actions it triggers (possibly none).
+
+        ``checked``: the caller has just run :meth:`check` on it and found no problem.
+        """
         if self.finished:
             return []
-        problem = self.check(msg)
+        problem = None if checked else self.check(msg)
         if problem is not None:
             self.rejected[problem] = self.rejected.get(problem, 0) + 1
             return []
@@ -176,7 +209,24 @@ class Coordinator:
             self.duplicates += 1
             return []
         self._round[i] = msg
+        if msg.status in SOLVED_STATUSES and input_excess(self.system.subsystems[i].input_set, msg.v) > 0:
+            self._refuse(i, msg)
         return self._maybe_close_round()
+
+    def _refuse(self, i: int, msg: PlanMessage) -> None:
+        """Agent i's plan leaves U_i: it stands as the agent's answer for the round, but its
+        fallback applies (as for an infeasible QP), and the refusal is counted."""
+        self._refused[i] = msg
+        self.inputs_refused[msg.sender] = self.inputs_refused.get(msg.sender, 0) + 1
+
+    def _usable(self, i: int, msg: PlanMessage | None) -> bool:
+        """True if ``msg`` is a solved plan of agent i that was not refused."""
+        return msg is not None and msg.status in SOLVED_STATUSES and self._refused.get(i) is not msg
+
+    def _fallback_reason(self, i: int, msg: PlanMessage | None) -> str:
+        if msg is None:
+            return "lost" if i in self._lost else "missed"
+        return INPUT_REFUSED if self._refused.get(i) is msg else f"qp {msg.status}"
 
     def on_deadline(self, k: int, iteration: int) -> list:
         """The round's deadline passed: whoever has not delivered missed it."""
@@ -250,23 +300,20 @@ class Coordinator:
         self._round = {}
         self._missed = set(self._lost)
         actions: list = []
-        x_parts = self.system.split_state(self.plant.x)
-        for i, name in enumerate(self.names):
-            if i in self._lost:
-                continue  # its plan would not be used; the first release after its Ready tells it it is back
-            nb = self.system.neighbours[i]
-            assumed = {}
-            for j in nb:
-                if j == i:
-                    continue
+        M = self.system.M
+        if len(self._lost) < M:
+            assumed = np.full((M, 2), -1, dtype=np.int64)
+            for j in range(M):
                 ref = self._reference(j)
-                assumed[self.names[j]] = None if ref is None else (ref.k, ref.iteration)
-            provided = {self.names[j]: (self._provided[j].z, self._provided[j].v)
-                        for j in nb if j != i and j in self._provided}
-            centre, size = self.policy.release(self.terminal, i)
-            release = Release(run=self.run_id, k=self.k, iteration=self.iteration, target=name,
-                              states={self.names[j]: x_parts[j].copy() for j in nb},
-                              alpha=centre, beta=size, assumed=assumed, provided=provided)
+                if ref is not None:
+                    assumed[j] = (ref.k, ref.iteration)
+            centres, sizes = self.policy.release_all(self.terminal)
+            # lost agents are skipped: their plans would not be used, and the first release after
+            # their Ready tells them they are back
+            release = Release(run=self.run_id, k=self.k, iteration=self.iteration, x=self.plant.x.copy(),
+                              centres=centres, sizes=sizes, assumed=assumed,
+                              skipped=tuple(self.names[i] for i in sorted(self._lost)),
+                              provided={self.names[j]: (plan.z, plan.v) for j, plan in self._provided.items()})
             actions.append(SendRelease(release))
         actions.append(RoundOpened(self.k, self.iteration))
         actions.extend(self._maybe_close_round())
@@ -279,13 +326,14 @@ class Coordinator:
         return self.last_plan[j]
 
     def _maybe_close_round(self) -> list:
-        if len(self._round) + len(self._missed - set(self._round)) < self.system.M:
+        if len(self._round) + len(self._missed) < self.system.M or (
+                self._missed and len(self._round) + len(self._missed - self._round.keys()) < self.system.M):
             return []
         self._prev_round = dict(self._step_latest)
         self._provided = {}
         for i, msg in self._round.items():
             self._round_status[i] = msg
-            if msg.status in SOLVED_STATUSES:
+            if self._usable(i, msg):
                 self._step_latest[i] = Plan(msg.k, msg.iteration, msg.z, msg.v)
         infeasible = [self.names[i] for i, msg in self._round.items() if msg.status not in SOLVED_STATUSES]
         if self.k == 0 and self.iteration == 0 and infeasible and not self._missed:
@@ -301,7 +349,8 @@ class Coordinator:
         return self._finalise_step()
 
     def _seed_from_centralized(self, infeasible: list[str]) -> None:
-        """Replace the first round's plans by the centralised QP's plan (ALGORITHM.md 3.4)."""
+        """Replace the first round's plans by the centralised QP's plan
+        (docs/algorithm.md, "Online step k, agent i", item 4)."""
         from dmpc.centralized import CentralQP
 
         T, lower, upper = self.policy.joint_terminal(self.terminal)
@@ -319,15 +368,27 @@ class Coordinator:
                        "started from the centralised QP's plan")
 
     def _round_change(self) -> float:
-        """Largest change between this round's plans and the previous round's (inf if none)."""
-        if self.iteration == 0:
-            return float("inf")
+        """Largest change of this round's plans: max over agents of max |z - z_ref|, |v - v_ref|.
+
+        Round 0 compares each plan with what the neighbours assumed of it: the agent's candidate,
+        its last plan shifted to step k and continued with K_i (at k = 0, or without any plan,
+        the decoupled K-rollout from x_i(k)), with the measured x_i(k) as first state. Later
+        rounds compare with the agent's plan of the previous round; inf if it has none there
+        (its QP was infeasible), so the rounds go on. Agents without a plan in this round do not
+        count (0 if none has one).
+        """
+        x_parts = self.system.split_state(self.plant.x) if self.iteration == 0 else None
         change = 0.0
         for i, plan in self._step_latest.items():
-            prev = self._prev_round.get(i)
-            if prev is None:
-                return float("inf")
-            change = max(change, float(np.max(np.abs(plan.z - prev.z))), float(np.max(np.abs(plan.v - prev.v))))
+            if self.iteration == 0:
+                z_ref, v_ref = self._candidate(i, self.last_plan[i], x_parts[i])
+                z_ref[0] = x_parts[i]
+            else:
+                prev = self._prev_round.get(i)
+                if prev is None:
+                    return float("inf")
+                z_ref, v_ref = prev.z, prev.v
+            change = max(change, float(np.abs(plan.z - z_ref).max()), float(np.abs(plan.v - v_ref).max()))
         return change
 
     # ------------------------------------------------------------------ step end
@@ -346,10 +407,9 @@ class Coordinator:
             qp_iters.append(msg.qp_iterations if msg is not None else 0)
             latency.append(msg.sent_at if msg is not None else float("nan"))
             if plan is not None:
-                u_parts.append(plan.v[0].copy())
-                eta_parts.append(plan.z[-1].copy())
-                J_agents.append(float(msg.cost) if msg is not None and msg.status in SOLVED_STATUSES
-                                else self._candidate_cost(i, plan))
+                u_parts.append(plan.v[0])  # concatenated into new arrays below
+                eta_parts.append(plan.z[-1])
+                J_agents.append(float(msg.cost) if self._usable(i, msg) else self._candidate_cost(i, plan))
                 self.last_plan[i] = plan
                 fallback.append(False)
                 reasons.append("")
@@ -361,7 +421,7 @@ class Coordinator:
                 u_parts.append(project_onto(sub.input_set, u_c))
                 J_agents.append(self._candidate_cost(i, last) if last is not None else float("nan"))
                 fallback.append(True)
-                reasons.append(("lost" if i in self._lost else "missed") if msg is None else f"qp {msg.status}")
+                reasons.append(self._fallback_reason(i, msg))
                 z_c, v_c = self._candidate(i, last, x_parts[i])
                 eta_parts.append(self.policy.fallback_terminal(self.terminal, i, z_c[-1]))
                 plans_z.append(z_c)

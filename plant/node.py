@@ -13,13 +13,26 @@ import logging
 from collections.abc import Callable
 
 from dmpc.bus import keys
-from dmpc.bus.codec import DecodeError, decode, encode
+from dmpc.bus.codec import MAX_REASON, DecodeError, decode, encode
 from dmpc.bus.interface import Bus
-from dmpc.bus.messages import PlanMessage, Ready, Stop
-from dmpc.plant.barrier import Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, StepRecord
+from dmpc.bus.messages import PlanMessage, Ready, Stop, design_claim
+from dmpc.plant.barrier import (Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, StepRecord,
+                                input_excess)
 from dmpc.security.rejects import Rejections
 
 log = logging.getLogger("dmpc.plant")
+NAMED_DESIGNS = 3  # differing designs spelled out in a start-up failure (the Stop reason is bounded)
+
+
+def _shown(text: str) -> str:
+    """``text`` (which may come from the sender) with non-printable characters as ``?``."""
+    return "".join(c if c.isprintable() else "?" for c in text)
+
+
+def design_text(digest: str, scenario: str = "", horizon: int = 0) -> str:
+    """``<digest> (scenario '<name>', horizon <N>)``, leaving out what is unknown."""
+    known = ([f"scenario '{_shown(scenario)}'"] if scenario else []) + ([f"horizon {horizon}"] if horizon else [])
+    return _shown(digest) + (f" ({', '.join(known)})" if known else "")
 
 
 class PlantNode:
@@ -38,20 +51,27 @@ class PlantNode:
         Step period in realtime mode (seconds).
     deadline : float or None
         Seconds after a round's release after which missing plans are missed.
+    scenario : str
+        The scenario's name, to say how an agent's differing design differs.
+    telemetry : dmpc.watch.telemetry.Telemetry, optional
+        Gets every completed step after ``on_step``, for observers (it never blocks).
     """
 
     def __init__(self, bus: Bus, coordinator: Coordinator, design_digest: str,
                  on_step: Callable[[StepRecord], None], mode: str = "lockstep", dt: float = 0.1,
-                 deadline: float | None = None) -> None:
+                 deadline: float | None = None, scenario: str = "", telemetry=None) -> None:
         self.bus = bus
         self.coordinator = coordinator
         self.run_id = coordinator.run_id
         self.names = coordinator.names
         self.design_digest = design_digest
+        self.scenario = scenario
+        self.mismatched: dict[str, Ready] = {}  # the latest Ready with another design, per agent
         self.on_step = on_step
         self.mode = mode
         self.dt = dt
         self.deadline = deadline
+        self.telemetry = telemetry
         self.ready: set[str] = set()
         self.alive: set[str] = set()
         self.started = False
@@ -62,10 +82,11 @@ class PlantNode:
         self._t0 = 0.0
         self._round_opened_at = 0.0
         self._step_opened_at = 0.0
+        self._opened_step = -1  # the step whose time _step_opened_at starts
         self._received_at: dict[str, float] = {}
         self._sent_at: dict[str, float] = {}
         self._stop_payload: bytes | None = None
-        bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan)
+        bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan, hot=True)
         bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
         bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
 
@@ -94,10 +115,12 @@ class PlantNode:
             return
         if msg.design_digest != self.design_digest:
             # dropped rather than fatal: anyone on the bus could send it; the run waits for a
-            # matching Ready and times out naming the agent if none comes
-            self._reject(name, f"design: agent {name} uses design {msg.design_digest:.16}, this plant "
-                               f"{self.design_digest}; give every process the same scenario")
+            # matching Ready and, if none comes, its start-up failure names the difference
+            self.mismatched[name] = msg
+            self._reject(name, f"design: {self._mismatch_text(name)}; this plant uses design "
+                               f"{self._own_design()}; give every process the same scenario")
             return
+        self.mismatched.pop(name, None)
         self.ready.add(name)
         if self.started:
             if self.coordinator.on_agent_back(name):
@@ -105,6 +128,29 @@ class PlantNode:
                             self.coordinator.k)
         else:
             self._maybe_start()
+
+    def _mismatch_text(self, name: str) -> str:
+        msg = self.mismatched[name]
+        return f"{design_claim(name, _shown(msg.design_digest))}{design_text('', msg.scenario, msg.horizon)}"
+
+    def _own_design(self) -> str:
+        return design_text(self.design_digest, self.scenario, self.coordinator.N)
+
+    def design_mismatch(self, names: list[str]) -> str:
+        """How the designs of those of ``names`` that sent another design differ ("" if none did).
+
+        Their last ``Ready`` is what is named: a forged one can mislead this text, but it never
+        stops the run before the start-up timeout.
+        """
+        differing = [name for name in names if name in self.mismatched]
+        if not differing:
+            return ""
+        shown = [self._mismatch_text(name) for name in differing[:NAMED_DESIGNS]]
+        if len(differing) > NAMED_DESIGNS:
+            shown.append(f"and {len(differing) - NAMED_DESIGNS} more")
+        head = "a design differs" if len(differing) == 1 else f"{len(differing)} designs differ"
+        return (f"{head} from this plant's: {'; '.join(shown)}; this plant uses design {self._own_design()}; "
+                "give every process the same scenario and --set options")
 
     def _on_alive(self, key: str, alive: bool) -> None:
         role = keys.last_chunk(key)
@@ -142,10 +188,21 @@ class PlantNode:
             self.coordinator.duplicates += 1  # the first copy counts; its timing too
             return
         now = self.bus.now()
-        actions = self.coordinator.on_plan(msg)
+        refused = self.coordinator.inputs_refused.get(name, 0)
+        actions = self.coordinator.on_plan(msg, checked=True)
+        if self.coordinator.inputs_refused.get(name, 0) > refused:
+            self._log_refusal(name, msg, refused + 1)
         self._received_at[name] = now
         self._sent_at[name] = msg.sent_at
         self._carry_out(actions)
+
+    def _log_refusal(self, name: str, msg: PlanMessage, count: int) -> None:
+        """Warn about an agent's first plan outside U_i; later ones are only counted."""
+        if count == 1:
+            excess = input_excess(self.coordinator.system.subsystems[self.coordinator.index[name]].input_set, msg.v)
+            log.warning("plant: refused the plan of agent %s at step %d round %d: its inputs leave U_%s by %.3g; "
+                        "its fallback applies (further refusals are counted in summary.json, inputs_refused)",
+                        name, msg.k, msg.iteration, name, excess)
 
     # ------------------------------------------------------------------ act
     def _maybe_start(self) -> None:
@@ -170,6 +227,8 @@ class PlantNode:
         finally:
             for rec in completed:
                 self.on_step(rec)
+                if self.telemetry is not None:
+                    self.telemetry.step(rec, self)
 
     def _dispatch(self, actions: list) -> None:
         for n, action in enumerate(actions):
@@ -180,20 +239,26 @@ class PlantNode:
                     if wait > 0:
                         self.bus.call_later(wait, lambda rest=actions[n:]: self._dispatch(rest))
                         return
-                self.bus.publish(keys.release(self.run_id, rel.target), encode(rel))
+                if rel.iteration == 0:
+                    self._open_step(rel.k)  # the step's time includes sending its release
+                self.bus.publish(keys.release(self.run_id), encode(rel))
             elif isinstance(action, RoundOpened):
                 self._round_opened_at = self.bus.now()
-                if action.iteration == 0:
-                    self._step_opened_at = self._round_opened_at
+                if action.iteration == 0 and self._opened_step != action.k:
+                    self._open_step(action.k)  # no release (every agent lost)
                 if self.deadline is not None:
                     k, r = action.k, action.iteration
                     self.bus.call_later(self.deadline, lambda k=k, r=r: self._carry_out(self.coordinator.on_deadline(k, r)))
             elif isinstance(action, RunFinished):
                 self._stop(action.reason)
 
+    def _open_step(self, k: int) -> None:
+        self._step_opened_at = self.bus.now()
+        self._opened_step = k
+
     def _stop(self, reason: str) -> None:
         self.finished = True
-        msg = Stop(run=self.run_id, k=self.coordinator.k, reason=reason)
+        msg = Stop(run=self.run_id, k=self.coordinator.k, reason=reason[:MAX_REASON])
         self._stop_payload = encode(msg)
         self.bus.publish(keys.control(self.run_id), self._stop_payload)
 

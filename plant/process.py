@@ -1,20 +1,23 @@
 """``dmpc plant``: the plant simulator and step barrier as a process on the Zenoh bus."""
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from dmpc.bus.interface import Bus
+from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
 from dmpc.methods import terminal_policy
 from dmpc.plant.barrier import Coordinator
-from dmpc.plant.dynamics import Plant
 from dmpc.plant.node import PlantNode
+from dmpc.records.agent_reports import LOGS, merge_agent_reports, report_path
+from dmpc.records.run_folder import STEP_LOG, RecordWriteError
 from dmpc.records.session import RunRecorder
+from dmpc.runtime.plant_setup import make_plant
 from dmpc.runtime.setup import Prepared
+from dmpc.watch.telemetry import Telemetry, open_telemetry
 
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_INTERRUPTED = 130
 LINGER = 2.0
+REPORT_WAIT = 1.0
 STOP_REPEAT = 0.2
 
 
@@ -32,34 +35,72 @@ def run_plant(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, 
     Ctrl-C (or SIGTERM) stops the agents and keeps every completed step in the run folder.
     """
     policy = terminal_policy(prepared.method, prepared.system, prepared.design)
-    coordinator = Coordinator(prepared.system, prepared.design, Plant(prepared.system), prepared.protocol, run_id,
+    coordinator = Coordinator(prepared.system, prepared.design, make_plant(prepared), prepared.protocol, run_id,
                               policy=policy)
+    telemetry = open_telemetry(bus, run_id, prepared)
     node = PlantNode(bus, coordinator, prepared.digest, recorder.on_step, mode=prepared.mode, dt=prepared.dt,
-                     deadline=prepared.deadline)
+                     deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry)
     node.announce()
     try:
         if not bus.run(until=lambda: node.started or node.finished, timeout=startup_timeout):
             missing = sorted(set(prepared.names) - node.ready)
             alive = sorted(node.alive)
-            reason = (f"plant: agents {', '.join(missing)} not ready within {startup_timeout:g} s "
+            reason = (f"agents {', '.join(missing)} not ready within {startup_timeout:g} s "
                       f"(alive: {', '.join(alive) or 'none'}; run id '{run_id}')")
+            mismatch = node.design_mismatch(missing)
+            reason = f"plant: {mismatch}; {reason}" if mismatch else f"plant: {reason}"
             node.fail(reason)
-            summary = recorder.complete(runtime=runtime, failure=reason)
-            linger(bus, node)
+            summary = recorder.complete(runtime=runtime, failure=reason, rejected=node.rejected,
+                                        rejected_reasons=node.rejects.reasons)
+            finish(bus, node, summary, telemetry, recorder)
             return PlantOutcome(EXIT_FAILED, reason, summary)
         bus.run(until=lambda: node.finished)
+    except RecordWriteError as exc:
+        reason = f"plant: {exc}; the run stopped after {recorder.steps} steps, which are kept in {STEP_LOG}"
+        node.fail(reason)
+        summary = recorder.complete_if_possible(runtime=runtime, failure=reason, rejected=node.rejected,
+                                                rejected_reasons=node.rejects.reasons,
+                                                inputs_refused=coordinator.inputs_refused)
+        finish(bus, node, summary, telemetry, recorder)
+        return PlantOutcome(EXIT_FAILED, reason, summary)
     except KeyboardInterrupt:
         node.abort("aborted")
         summary = recorder.complete(runtime=runtime, aborted="interrupted", rejected=node.rejected,
-                                    rejected_reasons=node.rejects.reasons)
-        linger(bus, node)
+                                    rejected_reasons=node.rejects.reasons, inputs_refused=coordinator.inputs_refused)
+        finish(bus, node, summary, telemetry, recorder)
         return PlantOutcome(EXIT_INTERRUPTED, f"plant: interrupted after {coordinator.k} steps", summary)
     summary = recorder.complete(runtime=runtime, failure=node.failure or None, rejected=node.rejected,
-                                rejected_reasons=node.rejects.reasons, duplicates=coordinator.duplicates)
-    linger(bus, node)
+                                rejected_reasons=node.rejects.reasons, duplicates=coordinator.duplicates,
+                                inputs_refused=coordinator.inputs_refused)
+    finish(bus, node, summary, telemetry, recorder)
     if node.failure:
         return PlantOutcome(EXIT_FAILED, f"plant: {node.failure}", summary)
+    if summary.get("verdict") == "failed":
+        kinds = ", ".join(dict.fromkeys(f["kind"] for f in summary["failures"]))
+        return PlantOutcome(EXIT_VERDICT, f"plant: finished {coordinator.k} steps; verdict failed ({kinds})", summary)
     return PlantOutcome(EXIT_OK, f"plant: finished {coordinator.k} steps", summary)
+
+
+def finish(bus: Bus, node: PlantNode, summary: dict | None, telemetry: Telemetry | None,
+           recorder: RunRecorder | None = None) -> None:
+    """Tell observers how the run ended, wait for the agents to leave, then stop the telemetry.
+
+    In a run folder made by ``dmpc run`` (it has ``logs/``), the agents' reports are merged into
+    the summary once they have left, so the summary has them even if the launcher is gone.
+    """
+    if telemetry is not None and summary is not None:
+        telemetry.summary(summary)
+    try:
+        linger(bus, node)
+    finally:
+        if telemetry is not None:
+            telemetry.close()
+    if summary is not None and recorder is not None and (recorder.folder.path / LOGS).is_dir():
+        out = recorder.folder.path
+        deadline = time.monotonic() + REPORT_WAIT  # an agent writes its report just after leaving
+        while time.monotonic() < deadline and not all(report_path(out, n).exists() for n in node.names):
+            time.sleep(0.02)
+        merge_agent_reports(out, node.names)
 
 
 def linger(bus: Bus, node: PlantNode, timeout: float = LINGER) -> None:

@@ -6,15 +6,19 @@ are recomputed by hand from the paper's matrices (tests/helpers/reference.py).
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from dmpc.agents.controller import AgentController
 from dmpc.bus.messages import PlanMessage
-from dmpc.plant.barrier import Coordinator, ProtocolOptions, RoundOpened, RunFinished, SendRelease, StepCompleted
+from dmpc.plant.barrier import (Coordinator, ProtocolOptions, RoundOpened, RunFinished, SendRelease, StepCompleted,
+                                 input_excess)
 from dmpc.plant.dynamics import Plant
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.system import LinearSet
 from dmpc.trajectories import Plan
 from tests.helpers.reference import A_II, B_II, K_PAPER, PAPER, U_BAR, block_diag, chain_matrices
 
@@ -35,6 +39,19 @@ def controllers(prepared):
     return [AgentController(prepared.system, prepared.design, i) for i in range(4)]
 
 
+def agent_view(release, system, name: str) -> SimpleNamespace:
+    """Agent ``name``'s part of a broadcast release: its neighbourhood's states by name, its centre
+    and size, its neighbours' references (None for a K-rollout) and provided plans."""
+    i = NAMES.index(name)
+    others = [NAMES[j] for j in system.neighbours[i] if j != i]
+    return SimpleNamespace(
+        k=release.k, iteration=release.iteration,
+        states={NAMES[j]: release.x[system.xs(j)] for j in system.neighbours[i]},
+        alpha=release.centres[system.xs(i)], beta=float(release.sizes[i]),
+        assumed={o: release.reference(NAMES.index(o)) for o in others},
+        provided={o: release.provided[o] for o in others if o in release.provided})
+
+
 class Driver:
     """Plays the agents' part: answers the coordinator's releases with controller solves."""
 
@@ -43,7 +60,7 @@ class Driver:
         self.coord = Coordinator(prepared.system, prepared.design, Plant(prepared.system), options, RUN)
         self.controllers = controllers
         self.archive: dict[tuple[str, int, int], Plan] = {}
-        self.releases = {}  # name -> latest Release
+        self.releases = {}  # name -> its part of the latest release
         self.records = []
         self.finished = False
         self.handle(self.coord.start())
@@ -51,7 +68,9 @@ class Driver:
     def handle(self, actions) -> list:
         for action in actions:
             if isinstance(action, SendRelease):
-                self.releases[action.release.target] = action.release
+                for name in NAMES:
+                    if name not in action.release.skipped:
+                        self.releases[name] = agent_view(action.release, self.system, name)
             elif isinstance(action, StepCompleted):
                 self.records.append(action.record)
             elif isinstance(action, RunFinished):
@@ -336,3 +355,54 @@ def test_agent_lost_and_back(at_step_1):
     d.round(["4"])
     assert d.records[-1].k == 4 and d.records[-1].fallback == [False] * 4
     check_plant_update(d.records[-1])
+
+
+# ---------------------------------------------------------------- inputs outside U_i
+
+def test_plan_with_an_input_outside_U_i_is_refused_and_its_fallback_applied(at_step_1):
+    d = at_step_1
+    last = d.records[-1]
+    plan_2 = Plan(0, last.rounds - 1, last.plans_z[1], last.plans_v[1])
+    good = d.message("2")
+    v = good.v.copy()
+    v[4, 0] = 3 * U_BAR  # a later input: the whole plan must lie in U_i, not only v(k)
+    bad = d.message("2", v=v)
+    assert d.coord.check(bad) is None  # well-formed: not dropped, so the round does not wait for it
+    for m in [d.message(n) for n in ("1", "3", "4")] + [bad]:
+        d.deliver(m)
+    rec = d.records[-1]
+    assert rec.k == 1
+    assert d.coord.inputs_refused == {"2": 1} and d.coord.rejected == {}
+    assert rec.fallback == [False, True, False, False]
+    assert rec.status[1] == "solved" and rec.fallback_reason[1] == "input outside U_i"
+    np.testing.assert_allclose(rec.u[1:2], shifted_projected(plan_2, 1, part(rec.x, 1), 1), atol=1e-12)
+    assert np.max(np.abs(rec.u)) <= U_BAR
+    check_plant_update(rec)
+    # its neighbours keep building on its last accepted plan
+    assert d.releases["1"].assumed["2"] == (0, last.rounds - 1)
+    d.round()
+    assert d.records[-1].fallback == [False] * 4 and d.coord.inputs_refused == {"2": 1}
+
+
+@pytest.mark.parametrize("excess, refused", [(0.5e-6 * U_BAR, False), (2e-6 * U_BAR, True), (-1e-3, False)])
+def test_input_tolerance_is_relative_to_the_bound(at_step_1, excess, refused):
+    d = at_step_1
+    msg = d.message("1")
+    v = msg.v.copy()
+    v[0, 0] = -(U_BAR + excess)
+    d.deliver(d.message("1", v=v))
+    d.round(["2", "3", "4"])
+    rec = d.records[-1]
+    assert rec.fallback[0] is refused
+    assert d.coord.inputs_refused == ({"1": 1} if refused else {})
+    if not refused:
+        assert rec.u[0] == -(U_BAR + excess)  # within the tolerance the plan is applied as sent
+
+
+def test_input_excess_on_a_polytope_with_one_sided_rows():
+    lin = LinearSet(np.array([[1.0, 1.0], [1.0, -1.0]]), np.array([-np.inf, -1.0]), np.array([2.0, np.inf]))
+    inside = np.array([[1.0, 0.5], [0.0, 0.0]])
+    assert input_excess(lin, inside) < 0
+    assert input_excess(lin, np.array([[1.5, 1.0]])) == pytest.approx(0.5 - 2e-6)
+    assert input_excess(lin, np.array([[0.0, 2.0]])) == pytest.approx(1.0 - 1e-6)
+    assert input_excess(lin, np.zeros((0, 2))) == -np.inf

@@ -11,7 +11,9 @@ def _results() -> dict:
     done = {"M": 4, "completed": True, "topology": "mesh", "steps": 100, "wall_s": 5.6, "step_ms_p50": 4.48,
             "step_ms_p99": 8.52, "step0_ms": 94.0, "bus_ms_p50": 4.09, "bus_share_p50": 0.962,
             "rss_mb_per_agent": 74.8, "pss_mb_per_agent": 45.1, "rss_mb_plant": 86.0, "rss_mb_total": 385.0,
-            "pss_mb_total": 236.0, "closed_loop_cost": 102.04, "feasible": True}
+            "pss_mb_total": 236.0, "closed_loop_cost": 102.04, "feasible": True,
+            "floor": {"M": 4, "completed": True, "steps": 100, "step_ms_p50": 2.24, "step_ms_p99": 2.84},
+            "over_floor_p50": 2.0, "over_floor_p99": 3.0}
     failed = {"M": 64, "completed": False, "topology": "mesh",
               "reason": "error: agent-30 exited with code -6 | see\nits log"}
     loop = {"step_ms_p50": 4.39, "step_ms_p99": 4.7, "closed_loop_cost": 102.044}
@@ -34,7 +36,7 @@ def test_every_figure_and_the_machine_are_in_the_report():
     assert "2 cores, 23.5 GiB" in text and "37.3 ms for 10^6 Python additions" in text
     assert "`dmpc bench --write benchmarks/RESULTS.md`" in text
     assert "| 10 | 940 | 49.4 | 138.5 |" in text
-    assert "| 4 | mesh | 100 | 6 | 4.48 | 8.52 | 96% | 74.8 | 45.1 | 385 | 236 |" in text
+    assert "| 4 | mesh | 100 | 6 | 4.48 | 8.52 | 2.24 | 2.84 | 2 | 3 | 96% | 74.8 | 45.1 | 385 | 236 |" in text
     # the side-by-side ratio multi-process / CVXPY = 4.48 / 3.38
     assert "| 1.33 |" in text
     headline = json.loads(text.split("```json")[1].split("```")[0])
@@ -50,6 +52,14 @@ def test_a_run_that_did_not_complete_is_a_row_with_its_reason_on_one_line():
     assert len(side) == 1
 
 
+def test_headline_has_the_floor_and_the_ratios():
+    from dmpc.bench_report import headline
+
+    h = headline(_results())
+    assert (h["floor_step_ms_p50_m4"], h["floor_step_ms_p99_m4"]) == (2.24, 2.84)
+    assert (h["step_over_floor_p50_m4"], h["step_over_floor_p99_m4"]) == (2.0, 3.0)
+
+
 def test_calibration_is_a_positive_time():
     assert 0.0 < calibration_ms(repeat=1) < 10_000.0
 
@@ -60,6 +70,8 @@ def test_targets_say_which_are_met_from_the_figures():
     assert rows["local QP, N = 10: median <= 60 us"] == ("49.4 us", "yes")
     assert rows["M = 4 lockstep step: median <= 1 ms"] == ("4.48 ms", "no")
     assert rows["M = 4 lockstep step: p99 <= 3 ms"] == ("8.52 ms", "no")
+    assert rows["M = 4 lockstep step: median <= 1.5x the bus floor's (same run)"] == ("2.00x (4.48 / 2.24 ms)", "no")
+    assert rows["M = 4 lockstep step: p99 <= 2x the bus floor's p99 (same run)"] == ("3.00x (8.52 / 2.84 ms)", "no")
     assert rows["M = 64 runs to completion"] == ("did not complete (mesh)", "no")
     assert rows["M = 128 attempted"] == ("not run", "-")
     assert rows["resident memory per agent <= 80 MB"] == ("75 MB at M = 4", "yes")

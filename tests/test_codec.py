@@ -24,12 +24,17 @@ def vectors(n=st.integers(1, 6)):
 
 @st.composite
 def releases(draw):
-    group = draw(st.lists(names, min_size=1, max_size=5, unique=True))
-    refs = st.one_of(st.none(), st.tuples(counts, counts))
-    return Release(run=draw(names), k=draw(counts), iteration=draw(counts), target=group[0],
-                   states={g: draw(vectors()) for g in group}, alpha=draw(vectors()),
-                   beta=draw(st.floats(min_value=0, max_value=1e6)),
-                   assumed={g: draw(refs) for g in group[1:]})
+    agents = draw(st.lists(names, min_size=1, max_size=5, unique=True))
+    n = draw(st.integers(1, 8))
+    refs = st.one_of(st.just((-1, -1)), st.tuples(counts, counts))
+    N = draw(st.integers(1, 4))
+    provided = {a: (draw(arrays(np.float64, (N + 1, 2), elements=finite)), draw(arrays(np.float64, (N, 1), elements=finite)))
+                for a in draw(st.lists(st.sampled_from(agents), max_size=2, unique=True))}
+    return Release(run=draw(names), k=draw(counts), iteration=draw(counts), x=draw(arrays(np.float64, (n,), elements=finite)),
+                   centres=draw(arrays(np.float64, (n,), elements=finite)),
+                   sizes=draw(arrays(np.float64, (len(agents),), elements=st.floats(min_value=0, max_value=1e6))),
+                   assumed=np.array([draw(refs) for _ in agents], dtype=np.int64).reshape(len(agents), 2),
+                   skipped=tuple(draw(st.lists(st.sampled_from(agents), max_size=2, unique=True))), provided=provided)
 
 
 @st.composite
@@ -46,7 +51,8 @@ def plans(draw):
 
 messages = st.one_of(
     releases(), plans(),
-    st.builds(Ready, run=names, sender=names, design_digest=names, pid=counts),
+    st.builds(Ready, run=names, sender=names, design_digest=names, pid=counts,
+              scenario=st.one_of(st.just(""), names), horizon=counts),
     st.builds(Stop, run=names, k=counts, reason=st.text(max_size=50), sender=names),
 )
 
@@ -55,6 +61,30 @@ messages = st.one_of(
 @given(messages)
 def test_round_trip(msg):
     assert messages_equal(decode(encode(msg)), msg)
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda b: b["centres"].update(shape=[2], data=np.zeros(2).tobytes()), "centres"),
+    (lambda b: b["sizes"].update(data=np.array([-1.0, 1.0]).tobytes()), "sizes"),
+    (lambda b: b["assumed"].update(data=np.array([[3, -1], [2, 0]]).tobytes()), "assumed"),
+    (lambda b: b["assumed"].update(shape=[1, 2], data=np.array([[3, 0]]).tobytes()), "assumed"),
+    (lambda b: b["assumed"].update(dtype="<f8"), "dtype"),
+    (lambda b: b.update(skipped=["a"] * 3), "skipped"),
+    (lambda b: b.update(skipped=[""]), "skipped"),
+])
+def test_release_defects_named(mutate, match):
+    msg = Release(run="r", k=1, iteration=0, x=np.zeros(3), centres=np.zeros(3), sizes=np.ones(2),
+                  assumed=np.array([[0, 0], [-1, -1]]))
+    body = msgpack.unpackb(encode(msg), raw=False)
+    mutate(body)
+    with pytest.raises(DecodeError, match=match):
+        decode(msgpack.packb(body, use_bin_type=True))
+
+
+def test_release_reference():
+    msg = Release(run="r", k=4, iteration=0, x=np.zeros(2), centres=np.zeros(2), sizes=np.ones(2),
+                  assumed=np.array([[3, 1], [-1, -1]]))
+    assert decode(encode(msg)).reference(0) == (3, 1) and decode(encode(msg)).reference(1) is None
 
 
 def test_infeasible_plan_carries_nan():
@@ -120,6 +150,31 @@ def test_specific_defects_named(mutate, match):
     msg = PlanMessage(run="r", k=1, iteration=0, sender="1", status="solved", z=np.zeros((2, 2)),
                       v=np.zeros((1, 1)), cost=1.0, solve_time=0.0, qp_iterations=7)
     body = msgpack.unpackb(encode(msg), raw=False)
+    mutate(body)
+    with pytest.raises(DecodeError, match=match):
+        decode(msgpack.packb(body, use_bin_type=True))
+
+
+def test_ready_without_scenario_and_horizon_decodes_with_defaults():
+    """A Ready from a sender that does not send the optional fields is still a Ready."""
+    body = msgpack.unpackb(encode(Ready(run="r", sender="2", design_digest="abc", pid=7, scenario="paper",
+                                        horizon=12)), raw=False)
+    assert decode(msgpack.packb(body, use_bin_type=True)) == Ready("r", "2", "abc", 7, "paper", 12)
+    del body["scenario"], body["horizon"]
+    assert decode(msgpack.packb(body, use_bin_type=True)) == Ready(run="r", sender="2", design_digest="abc", pid=7)
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda b: b.pop("design_digest"), "missing"),
+    (lambda b: b.update(scenario=3), "scenario"),
+    (lambda b: b.update(scenario="x" * 65), "scenario"),
+    (lambda b: b.update(horizon=-1), "horizon"),
+    (lambda b: b.update(horizon="10"), "horizon"),
+    (lambda b: b.update(extra=1), "unexpected"),
+])
+def test_ready_defects_named(mutate, match):
+    body = msgpack.unpackb(encode(Ready(run="r", sender="2", design_digest="abc", scenario="paper", horizon=10)),
+                           raw=False)
     mutate(body)
     with pytest.raises(DecodeError, match=match):
         decode(msgpack.packb(body, use_bin_type=True))

@@ -12,7 +12,8 @@ from dmpc.scenario import load_scenario
 from tests.helpers.reference import PAPER
 from tests.helpers.cli import call, one_error_line
 
-ENTRY_KEYS = {"run_dir", "closed_loop_cost", "J", "S", "steps_to_1e-3", "feasible", "fallbacks", "solve_time_median_s"}
+ENTRY_KEYS = {"run_dir", "closed_loop_cost", "J", "S", "steps_to_1e-3", "feasible", "fallbacks", "solve_time_median_s",
+              "verdict", "failures"}
 
 
 # --------------------------------------------------------------------------- compare

@@ -1,6 +1,6 @@
-"""Offline design (ALGORITHM.md section 2 and the offline properties of section 6).
+"""Offline design (docs/algorithm.md, "Offline design", and the offline side of "What is and is not guaranteed").
 
-The paper's example is checked against the reference figures of ALGORITHM.md section 5 and
+The paper's example (docs/algorithm.md, "The paper's example, corrected") is checked against its reference figures and
 against independent computations: the global matrices are written out by hand in
 ``tests/helpers/reference.py`` and every set property is an LP solved here with scipy.
 """

@@ -32,7 +32,10 @@ def test_run_equals_simulate(tmp_path, scenario, extra):
     # same files, same keys
     files = {p.name for p in sim.iterdir()}
     assert files <= {p.name for p in multi.iterdir()}
-    assert set(json.loads((sim / "summary.json").read_text())) == set(summary)
+    launcher_only = {"launcher", "agent_reports_missing"}  # what dmpc run adds about its processes
+    assert set(json.loads((sim / "summary.json").read_text())) == set(summary) - launcher_only
+    assert summary["launcher"] == {"restarts": {}, "lost": [], "crashes": {}}
+    assert summary["agent_reports_missing"] == []
     assert set(json.loads((sim / "design.json").read_text())) == set(json.loads((multi / "design.json").read_text()))
     assert set(np.load(sim / "trajectory.npz").files) == set(np.load(multi / "trajectory.npz").files)
     processes = json.loads((multi / "processes.json").read_text())
@@ -102,13 +105,13 @@ def test_plant_that_never_sees_an_agent_exits_with_message(procs, tmp_path):
     assert summary["steps"] == 0 and "not ready" in summary["failure"]
 
 
-def _manual_run(procs, tmp_path, plant_net, agent_net, router=None):
+def _manual_run(procs, tmp_path, plant_net, agent_net, router=None, source="scenarios/paper.yaml"):
     out = tmp_path / "out"
     if router:
         procs.start("router", "--listen", router, log="router.log")
-    plant = procs.start("plant", "scenarios/paper.yaml", "--out", str(out), "--quiet", "--run-id", "t1",
+    plant = procs.start("plant", source, "--out", str(out), "--quiet", "--run-id", "t1",
                         "--startup-timeout", "60", *plant_net, log="plant.log")
-    agents = [procs.start("agent", "scenarios/paper.yaml", "--id", str(i), "--run-id", "t1",
+    agents = [procs.start("agent", source, "--id", str(i), "--run-id", "t1",
                           "--startup-timeout", "60", *agent_net, log=f"agent{i}.log") for i in range(1, 5)]
     plant.wait(timeout=120)
     for a in agents:
@@ -133,6 +136,22 @@ def test_peers_only(procs, tmp_path, paper_simulated):
     assert max_abs_diff(paper_simulated, out) <= 1e-9
 
 
+def test_plant_and_agents_from_a_run_bundle(procs, tmp_path, paper_simulated):
+    from dmpc.runtime.bundle import write_bundle
+    from dmpc.runtime.setup import prepare
+    from dmpc.scenario import load_scenario
+
+    bundle = tmp_path / "run.json"
+    write_bundle(prepare(load_scenario("scenarios/paper.yaml")), bundle)
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    out = _manual_run(procs, tmp_path, ["--listen", ep], ["--connect", ep, "--listen", "tcp/127.0.0.1:0"],
+                      source=str(bundle))
+    assert max_abs_diff(paper_simulated, out) <= 1e-9
+    assert json.loads((out / "run.json").read_text())["design"]["digest"] == \
+        json.loads((paper_simulated / "design.json").read_text())["digest"]
+    assert not (out / "scenario.yaml").exists()
+
+
 def test_run_refuses_used_folder_with_exit_2(tmp_path, paper_simulated):
     res = run_cli("run", "scenarios/paper.yaml", "--out", str(paper_simulated), "--quiet")
     assert res.returncode == 2
@@ -142,9 +161,10 @@ def test_run_refuses_used_folder_with_exit_2(tmp_path, paper_simulated):
 
 @pytest.mark.skipif(os.cpu_count() is None, reason="needs cpu count")
 def test_failed_child_stops_every_process(tmp_path):
-    """A child that fails (here: an agent that cannot load its design) stops the whole run."""
+    """With --fail-fast, a child that fails (here: an agent killed) stops the whole run; without it a
+    crashed agent is a lost agent (test_e2e_hard_env)."""
     out = tmp_path / "run"
-    proc = subprocess.Popen(DMPC + ["run", "scenarios/paper.yaml", "--out", str(out), "--quiet",
+    proc = subprocess.Popen(DMPC + ["run", "scenarios/paper.yaml", "--out", str(out), "--quiet", "--fail-fast",
                                     "--set", "options.mode=realtime", "--set", "options.dt=0.2", "--steps", "100"],
                             cwd=ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
@@ -159,3 +179,35 @@ def test_failed_child_stops_every_process(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_agent_with_another_design_is_named_by_plant_and_agent(procs, tmp_path):
+    """Agent 4 started with ``--set horizon=12`` against a plant of the scenario as it is: the
+    plant fails at its start-up timeout naming agent 4 and both designs, and agent 4 says that
+    its design differs from the plant's."""
+    from dmpc.runtime.setup import prepare
+    from dmpc.scenario import load_scenario
+
+    scenario = ROOT / "scenarios" / "paper.yaml"
+    plant_digest = prepare(load_scenario(scenario)).digest
+    agent_digest = prepare(load_scenario(scenario, {"horizon": 12})).digest
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    common = ["--run-id", "t7", "--connect", ep, "--listen", "tcp/127.0.0.1:0", "--startup-timeout", "90"]
+    agents = [procs.start("agent", "scenarios/paper.yaml", "--id", str(i), *common,
+                          *(["--set", "horizon=12"] if i == 4 else []), log=f"agent{i}.log") for i in range(1, 5)]
+    plant = procs.start("plant", "scenarios/paper.yaml", "--out", str(tmp_path / "out"), "--quiet", "--run-id", "t7",
+                        "--listen", ep, "--startup-timeout", "15", log="plant.log")
+    plant.wait(timeout=90)
+    for a in agents:
+        a.wait(timeout=30)
+    text = procs.log(plant)
+    assert plant.returncode == 1, text
+    assert "a design differs from this plant's" in text
+    assert f"agent 4 uses design {agent_digest} (scenario 'paper', horizon 12)" in text
+    assert f"this plant uses design {plant_digest} (scenario 'paper', horizon 10)" in text
+    assert "agents 4 not ready within 15 s" in text and "Traceback" not in text
+    assert agents[3].returncode == 1
+    line = procs.log(agents[3])
+    assert "agent 4: its design differs from the plant's" in line and agent_digest in line and plant_digest in line
+    for a in agents[:3]:
+        assert a.returncode == 1 and "its design differs" not in procs.log(a)

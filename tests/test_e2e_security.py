@@ -187,7 +187,7 @@ def spoof_run(procs: Processes, tmp_path: Path, paper: dict, tls: Path, run_id: 
 @pytest.mark.parametrize("topology", ["mesh", "star"])
 def test_acl_denies_an_authenticated_agent_on_other_agents_keys(procs, tmp_path, paper, certs, topology):
     """Holding agent 1's valid certificate, a rogue sends well-formed plans on plan/3, releases on
-    release/2, Stop on control and garbage on those keys and on ready/3: none of it arrives
+    release, Stop on control and garbage on those keys and on ready/3: none of it arrives
     anywhere and the trajectory is the clean one. Its garbage on plan/1, its own key, does
     arrive and is counted: the rogue was connected, and only the access control stopped it.
     In the mesh every node filters what the rogue's direct links bring in; in the star the
@@ -223,7 +223,7 @@ def test_without_access_control_the_same_rogue_breaks_the_run(procs, tmp_path, p
 
 # --------------------------------------------------------------------------- 3. a garbage flood
 def test_run_survives_a_flood_of_garbage(procs, tmp_path, paper):
-    """A rogue peer floods plan/*, release/*, ready/* and control with random bytes, truncated
+    """A rogue peer floods plan/*, release, ready/* and control with random bytes, truncated
     and malformed msgpack, plausible but wrong messages and replayed plans during a plain TCP
     run: the run has the clean trajectory, and every drop is counted per sender (plant in
     summary.json, agents in their reports), with at most one log line per sender per second."""
@@ -274,8 +274,11 @@ def test_secure_run_equals_plain_run_and_simulate(tmp_path, paper):
     plain, secure = tmp_path / "plain", tmp_path / "secure"
     res = run_cli("run", SCENARIO, "--out", str(plain), "--quiet")
     assert res.returncode == 0, res.stderr + res.stdout
-    res = run_cli("run", SCENARIO, "--secure", "--out", str(secure), "--quiet")
+    assert "starting" not in res.stderr and "security" not in res.stdout
+    res = run_cli("run", SCENARIO, "--secure", "--out", str(secure))
     assert res.returncode == 0, res.stderr + res.stdout
+    assert f"starting 5 processes: the plant and 4 agents (mesh, TLS); logs in {secure / 'logs'}" in res.stderr
+    assert "TLS with mutual authentication, access control on" in res.stdout
     assert max_abs_diff(plain, secure) <= 1e-9
     assert max_abs_diff(paper["sim"], secure) <= 1e-9
     check_secure_records(secure, plain)
@@ -299,8 +302,12 @@ def check_secure_records(secure: Path, plain: Path) -> None:
     assert summary["feasible"] and summary["fallbacks"] == 0 and summary["rejected"] == {}
     assert set(summary["agents"]) == {"1", "2", "3", "4"}
     assert all(a["rejected"] == {} and a["exit_code"] == 0 for a in summary["agents"].values())
-    assert set(summary) == set(json.loads((plain / "summary.json").read_text()))
     tls = secure / "tls"
+    assert summary["security"] == {"tls": True, "mutual_authentication": True, "access_control": True,
+                                   "certificates": str(tls)}
+    launcher_only = {"launcher", "agent_reports_missing"}  # absent when ``plain`` ran in one process
+    assert set(summary) - {"security"} - launcher_only == \
+        set(json.loads((plain / "summary.json").read_text())) - launcher_only
     assert {p.name for p in tls.iterdir()} >= {"ca.pem", "plant.pem", "plant.key", "agent-4.pem", "acl.json"}
     assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in tls.glob("*.key"))
     run_id = json.loads((secure / "logs" / "agent-1.json").read_text())["run_id"]
@@ -427,12 +434,12 @@ class _Garbage:
         fields.update(change)
         return PlanMessage(**fields)
 
-    def release(self, name: str, **change):
+    def release(self, **change):
         from dmpc.bus.messages import Release
 
-        fields = dict(run=self.run, k=int(self.rng.integers(0, 30)), iteration=0, target=name,
-                      states={j: np.zeros(self.n[j]) for j in self.groups[name]}, alpha=np.zeros(self.n[name]),
-                      beta=1.0, assumed={j: None for j in self.groups[name] if j != name})
+        M, n = len(self.names), sum(self.n.values())
+        fields = dict(run=self.run, k=int(self.rng.integers(0, 30)), iteration=0, x=np.zeros(n), centres=np.zeros(n),
+                      sizes=np.ones(M), assumed=np.full((M, 2), -1, dtype=np.int64))
         fields.update(change)
         return Release(**fields)
 
@@ -460,13 +467,14 @@ class _Garbage:
                 lambda: self.plan(name, k=10**9),                                           # far future
             ])()
         elif key_kind == "release":
+            M, n = len(self.names), sum(self.n.values())
             msg = self.pick([
-                lambda: self.release(name, run="another-run"),
-                lambda: self.release(name, target=other),
-                lambda: self.release(name, alpha=np.zeros(self.n[name] + 1)),
-                lambda: self.release(name, states={name: np.zeros(self.n[name] + 3)}),
-                lambda: self.release(name, k=3, iteration=0, assumed={j: (3, 0) for j in self.groups[name] if j != name}),
-                lambda: self.release(name, beta=-1.0),
+                lambda: self.release(run="another-run"),
+                lambda: self.release(sender=other),
+                lambda: self.release(x=np.zeros(n + 1), centres=np.zeros(n + 1)),
+                lambda: self.release(sizes=np.ones(M + 1), assumed=np.zeros((M + 1, 2), dtype=np.int64)),
+                lambda: self.release(k=3, iteration=0, assumed=np.full((M, 2), 3, dtype=np.int64)),
+                lambda: self.release(provided={"nobody": (np.zeros((self.N + 1, 2)), np.zeros((self.N, 1)))}),
             ])()
         elif key_kind == "ready":
             msg = self.pick([Ready(run="another-run", sender=name, design_digest="0" * 16),
@@ -540,7 +548,7 @@ def _rogue(argv: list[str]) -> int:
     if args.attack == "flood":
         entities.append(session.declare_subscriber(keys.plan(R, "*"), on_plan, allowed_origin=zenoh.Locality.REMOTE))
     else:
-        entities.append(session.declare_subscriber(keys.release(R, "1"), on_release))
+        entities.append(session.declare_subscriber(keys.release(R), on_release))
     deadline = time.monotonic() + 20
     while "plant" not in alive and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -548,7 +556,7 @@ def _rogue(argv: list[str]) -> int:
 
     sent = {"total": 0, "forged": 0, "replayed": 0, "releases_seen": 0}
     names = garbage.names
-    flood_keys = ([("plan", n) for n in names + ["evil", "99"]] + [("release", n) for n in names + ["x"]]
+    flood_keys = ([("plan", n) for n in names + ["evil", "99"]] + [("release", n) for n in names]
                   + [("ready", n) for n in names + ["nobody"]] + [("control", "")])
 
     def put(key: str, payload: bytes, what: str = "total") -> None:
@@ -562,7 +570,8 @@ def _rogue(argv: list[str]) -> int:
     while not gone.is_set() and time.monotonic() < end:
         if args.attack == "flood":
             kind, name = garbage.pick(flood_keys)
-            key = keys.control(R) if kind == "control" else f"{keys.ROOT}/{R}/{kind}/{name}"
+            key = (keys.control(R) if kind == "control" else keys.release(R) if kind == "release"
+                   else f"{keys.ROOT}/{R}/{kind}/{name}")
             payload_name = name if name in names else garbage.pick(names)
             put(key, garbage.payload(kind, payload_name))
             with lock:
@@ -579,9 +588,9 @@ def _rogue(argv: list[str]) -> int:
                     continue
                 put(keys.plan(R, "3"), encode(garbage.plan("3", k=rel.k, iteration=rel.iteration,
                                                              v=np.full((garbage.N, garbage.m["3"]), 2.0))), "forged")
-                put(keys.release(R, "2"), encode(garbage.release("2", k=rel.k, iteration=rel.iteration + 1)), "forged")
+                put(keys.release(R), encode(garbage.release(k=rel.k, iteration=rel.iteration + 1)), "forged")
                 put(keys.control(R), encode(Stop(run=R, k=rel.k, reason="finished")), "forged")
-            for key in (keys.plan(R, "3"), keys.release(R, "2"), keys.ready(R, "3"), keys.control(R), keys.plan(R, "1")):
+            for key in (keys.plan(R, "3"), keys.release(R), keys.ready(R, "3"), keys.control(R), keys.plan(R, "1")):
                 put(key, garbage.rng.bytes(int(garbage.rng.integers(1, 100))))
             time.sleep(0.002)
     sent["seconds"] = time.monotonic() - t0

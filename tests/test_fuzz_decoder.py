@@ -18,10 +18,11 @@ FUZZ_NESTED = settings(FUZZ, max_examples=500)  # slower to generate
 N, n, m = 4, 2, 1
 PLAN = PlanMessage(run="r", k=3, iteration=1, sender="2", status="solved", z=np.arange((N + 1) * n, dtype=float).reshape(N + 1, n),
                    v=np.ones((N, m)), cost=1.5, solve_time=0.001, qp_iterations=25, sent_at=12.5)
-RELEASE = Release(run="r", k=3, iteration=0, target="2", states={"1": np.ones(n), "2": np.zeros(n), "3": -np.ones(n)},
-                  alpha=np.array([0.1, 0.2]), beta=0.9, assumed={"1": (2, 0), "3": None},
+RELEASE = Release(run="r", k=3, iteration=0, x=np.array([1.0, 1.0, 0.0, 0.0, -1.0, -1.0]),
+                  centres=np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0]), sizes=np.full(3, 0.9),
+                  assumed=np.array([[2, 0], [2, 0], [-1, -1]]), skipped=("3",),
                   provided={"1": (np.zeros((N + 1, n)), np.zeros((N, m)))})
-VALID = [encode(PLAN), encode(RELEASE), encode(Ready(run="r", sender="2", design_digest="abc", pid=7)),
+VALID = [encode(PLAN), encode(RELEASE), encode(Ready(run="r", sender="2", design_digest="abc", pid=7, scenario="paper", horizon=10)),
          encode(Stop(run="r", k=9, reason="finished"))]
 
 # msgpack values of every kind, nested: the building blocks of well-formed garbage
@@ -38,6 +39,9 @@ def check_invariants(msg) -> None:
     for name in ("run", "sender"):
         text = getattr(msg, name)
         assert isinstance(text, str) and 0 < len(text) <= MAX_NAME
+    if isinstance(msg, Ready):
+        assert isinstance(msg.scenario, str) and len(msg.scenario) <= MAX_NAME
+        assert type(msg.horizon) is int and 0 <= msg.horizon <= 2**53
     if isinstance(msg, (PlanMessage, Release, Stop)):
         assert type(msg.k) is int and 0 <= msg.k <= 2**53
     if isinstance(msg, PlanMessage):
@@ -48,11 +52,15 @@ def check_invariants(msg) -> None:
         assert not np.isinf(msg.z).any() and not np.isinf(msg.v).any()
         assert math.isfinite(msg.solve_time) and msg.solve_time >= 0 and math.isfinite(msg.sent_at)
     if isinstance(msg, Release):
-        assert math.isfinite(msg.beta) and msg.beta >= 0
-        arrays = [msg.alpha, *msg.states.values()] + [a for pair in msg.provided.values() for a in pair]
+        assert msg.sizes.ndim == 1 and msg.sizes.size >= 1 and (msg.sizes >= 0).all()
+        assert msg.x.ndim == 1 and msg.centres.shape == msg.x.shape
+        arrays = [msg.x, msg.centres, msg.sizes] + [a for pair in msg.provided.values() for a in pair]
         assert all(a.dtype == np.float64 and np.isfinite(a).all() for a in arrays)
-        assert all(ref is None or (len(ref) == 2 and all(type(x) is int and x >= 0 for x in ref))
-                   for ref in msg.assumed.values())
+        assert msg.assumed.dtype == np.int64 and msg.assumed.shape == (msg.sizes.size, 2)
+        for j in range(msg.sizes.size):
+            ref = msg.reference(j)
+            assert ref is None or all(type(x) is int and 0 <= x <= 2**53 for x in ref)
+        assert all(isinstance(name, str) and 0 < len(name) <= MAX_NAME for name in msg.skipped)
 
 
 def decode_or_reject(payload: bytes):
@@ -116,11 +124,9 @@ def test_arrays_with_wrong_dtype_shape_or_values(data):
         field = data.draw(st.sampled_from(["z", "v"]))
         body[field] = _array_map(data.draw)
     else:
-        target = data.draw(st.sampled_from(["alpha", "states", "provided"]))
-        if target == "alpha":
-            body["alpha"] = _array_map(data.draw)
-        elif target == "states":
-            body["states"]["1"] = _array_map(data.draw)
+        target = data.draw(st.sampled_from(["x", "centres", "sizes", "assumed", "provided"]))
+        if target != "provided":
+            body[target] = _array_map(data.draw)
         else:
             body["provided"]["1"][data.draw(st.integers(0, 1))] = _array_map(data.draw)
     decode_or_reject(msgpack.packb(body, use_bin_type=True))

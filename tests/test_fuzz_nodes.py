@@ -200,8 +200,8 @@ def _unchecked_plan(payload: bytes) -> PlanMessage:
                        qp_iterations=b["qp_iterations"], sent_at=b["sent_at"])
 
 
-def test_coordinator_guard_catches_an_invalid_input(prepared):
-    """The guard is not a tautology: a plan outside U that the coordinator accepts shows up."""
+def _step_with_plans_outside_U(prepared) -> tuple[Coordinator, GuardedPlant]:
+    """One step in which every agent answers every round with inputs BAD, outside U."""
     coord, plant = guarded_coordinator(prepared, steps=1)
     coord.start()
     N = prepared.design.horizon
@@ -211,7 +211,20 @@ def test_coordinator_guard_catches_an_invalid_input(prepared):
             coord.on_plan(PlanMessage(run=RUN, k=0, iteration=coord.iteration, sender=name, status="solved",
                                       z=np.zeros((N + 1, sub.n)), v=np.full((N, sub.m), BAD), cost=0.0,
                                       solve_time=0.0, qp_iterations=1))
-    assert plant.steps == 1
+    return coord, plant
+
+
+def test_plans_outside_U_never_reach_the_plant(prepared):
+    coord, plant = _step_with_plans_outside_U(prepared)
+    assert plant.steps == 1 and plant.violations == []
+    assert set(coord.inputs_refused) == set(NAMES)
+
+
+def test_coordinator_guard_catches_an_invalid_input(prepared, monkeypatch):
+    """The guard is not a tautology: a plan outside U that the coordinator accepts shows up."""
+    monkeypatch.setattr("dmpc.plant.barrier.input_excess", lambda input_set, v: -np.inf)
+    coord, plant = _step_with_plans_outside_U(prepared)
+    assert plant.steps == 1 and coord.inputs_refused == {}
     assert any("outside U" in v for v in plant.violations)
 
 
@@ -260,52 +273,52 @@ class GuardedController:
 
 
 def release_payload(draw, prepared, name: str, k: int, it: int, fault: str) -> tuple[str, bytes]:
+    """A release of (k, it) with one ``fault``, as agent ``name`` receives it; returns (key, payload)."""
     system = prepared.system
-    i = NAMES.index(name)
-    group = [NAMES[j] for j in system.neighbours[i]]
-    others = [g for g in group if g != name]
-    states = {g: values(draw, (system.subsystems[NAMES.index(g)].n,)) for g in group}
+    M, n = system.M, system.n
+    x = values(draw, (n,))
     if fault == "nan":
-        states[draw(st.sampled_from(group))] = np.array([draw(st.sampled_from([np.nan, np.inf, -np.inf])), 0.0])
-    assumed = {}
-    for g in others:
-        if k == 0 and it == 0:
-            assumed[g] = None
-        else:
-            assumed[g] = draw(st.sampled_from([None, (k, it - 1) if it > 0 else (k - 1, 0), (max(k - 1, 0), 0)]))
-    fields = dict(run=RUN, k=k, iteration=it, target=name, states=states, alpha=values(draw, (2,)),
-                  beta=draw(st.floats(0, VALID)), assumed=assumed)
-    if fault == "wrong_target":
-        fields["target"] = draw(st.sampled_from([n for n in NAMES if n != name]))
-    elif fault == "wrong_sender":
+        x[draw(st.integers(0, n - 1))] = draw(st.sampled_from([np.nan, np.inf, -np.inf]))
+    assumed = np.full((M, 2), -1, dtype=np.int64)
+    if not (k == 0 and it == 0):
+        for j in range(M):
+            assumed[j] = draw(st.sampled_from([(-1, -1), (k, it - 1) if it > 0 else (k - 1, 0), (max(k - 1, 0), 0)]))
+    fields = dict(run=RUN, k=k, iteration=it, x=x, centres=values(draw, (n,)),
+                  sizes=np.full(M, draw(st.floats(0, VALID))), assumed=assumed)
+    i = NAMES.index(name)
+    others = [NAMES[j] for j in system.neighbours[i] if j != i]
+    if fault == "wrong_sender":
         fields["sender"] = "1"
     elif fault == "wrong_run":
         fields["run"] = "other"
-    elif fault == "missing_state":
-        fields["states"] = {g: x for g, x in states.items() if g != others[0]}
     elif fault == "wrong_shape":
-        fields["alpha"] = np.full(3, BAD)
+        fields["x"], fields["centres"] = np.full(n + 1, BAD), np.full(n + 1, BAD)
+    elif fault == "wrong_count":
+        fields["sizes"], fields["assumed"] = np.full(M + 1, BAD), np.zeros((M + 1, 2), dtype=np.int64)
     elif fault == "future_far":
         fields["k"] = k + 10**6
     elif fault == "future_ref":
-        fields["assumed"] = {g: (k + 1, 0) for g in others}
-    elif fault == "unknown_neighbour":
-        fields["assumed"] = {**assumed, "4": None}
+        assumed[[NAMES.index(o) for o in others]] = (k + 1, 0)
+    elif fault == "skipped":
+        fields["skipped"] = (name,)
     elif fault == "bad_provided":
         fields["provided"] = {others[0]: (np.full((3, 2), BAD), np.full((2, 1), BAD))}
-    elif fault == "huge_beta":
-        fields["beta"] = float("inf")
+    elif fault == "unknown_provided":
+        N = prepared.design.horizon
+        fields["provided"] = {"9": (np.full((N + 1, 2), BAD), np.full((N, 1), BAD))}
+    elif fault == "huge_size":
+        fields["sizes"] = np.full(M, np.inf)
     payload = encode(Release(**fields))
     if fault == "truncated":
         payload = payload[:draw(st.integers(0, len(payload) - 1))]
     elif fault == "bytes":
         payload = draw(st.binary(max_size=200))
-    return keys.release(RUN, name), payload
+    return keys.release(RUN), payload
 
 
-RELEASE_FAULTS = ["valid", "valid", "valid", "again", "nan", "wrong_target", "wrong_sender", "wrong_run",
-                  "missing_state", "wrong_shape", "future_far", "future_ref", "unknown_neighbour", "bad_provided",
-                  "huge_beta", "truncated", "bytes"]
+RELEASE_FAULTS = ["valid", "valid", "valid", "again", "nan", "wrong_sender", "wrong_run", "wrong_shape",
+                  "wrong_count", "future_far", "future_ref", "skipped", "bad_provided", "unknown_provided",
+                  "huge_size", "truncated", "bytes"]
 
 
 @FUZZ
@@ -351,7 +364,7 @@ def test_agent_node_survives_hostile_messages(prepared, data):
             bus.run(lambda: False, timeout=0.1)
             continue
         else:
-            key = data.draw(st.sampled_from([keys.release(RUN, name), keys.plan(RUN, "1"), keys.plan(RUN, "3"),
+            key = data.draw(st.sampled_from([keys.release(RUN), keys.plan(RUN, "1"), keys.plan(RUN, "3"),
                                              keys.control(RUN)]))
             payload = data.draw(st.binary(max_size=300))
         history.append((key, payload))

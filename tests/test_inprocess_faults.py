@@ -1,12 +1,20 @@
-"""In-process runs on the in-memory bus: determinism, delays, losses, a lost agent."""
+"""In-process runs on the in-memory bus: determinism, delays, losses, a lost agent, inputs outside U_i."""
 from __future__ import annotations
+
+import dataclasses
+import json
 
 import numpy as np
 import pytest
 
 from dmpc.bus import keys
+from dmpc.bus.codec import decode, encode
 from dmpc.bus.faults import FaultPlan, FaultyBus, LinkFault
+from dmpc.bus.interface import Bus
+from dmpc.bus.messages import PlanMessage
 from dmpc.records.run_folder import summarise, trajectory_arrays
+from dmpc.records.session import RunRecorder
+from dmpc.runtime import inprocess
 from dmpc.runtime.inprocess import build_run, simulate
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
@@ -90,3 +98,61 @@ def test_dead_link_fails_startup_instead_of_hanging():
     _, result, _, summary = run(bus_for=lambda bus, name: FaultyBus(bus, name, plan))
     assert summary["steps"] == 0
     assert "2" in result.plant.failure and "not ready" in result.plant.failure
+
+
+class OutOfBoundsPlans(Bus):
+    """Agent ``name``'s view of the bus: its plans of the given steps leave U_i (v(k) = ``value``).
+
+    Every subscriber gets the tampered plan, as from a compromised agent."""
+
+    def __init__(self, bus: Bus, steps: set[int], value: float) -> None:
+        self.bus, self.steps, self.value = bus, steps, value
+
+    def publish(self, key: str, payload: bytes) -> None:
+        msg = decode(payload)
+        if isinstance(msg, PlanMessage) and msg.k in self.steps and msg.status == "solved":
+            v = msg.v.copy()
+            v[0] = self.value
+            payload = encode(dataclasses.replace(msg, v=v))
+        self.bus.publish(key, payload)
+
+    def subscribe(self, key, handler, hot=False):
+        self.bus.subscribe(key, handler, hot)
+
+    def declare_alive(self, key):
+        self.bus.declare_alive(key)
+
+    def watch_alive(self, pattern, handler):
+        self.bus.watch_alive(pattern, handler)
+
+    def now(self):
+        return self.bus.now()
+
+    def call_later(self, delay, fn):
+        return self.bus.call_later(delay, fn)
+
+    def run(self, until, timeout=None):
+        return self.bus.run(until, timeout)
+
+    def close(self):
+        self.bus.close()
+
+
+def test_plans_outside_U_i_are_refused_counted_and_fall_back(tmp_path, monkeypatch):
+    """Agent 2 sends v(k) = 40 (U_2 = [-2.5, 2.5]) at steps 3 and 7: the plant applies its
+    fallback instead, inside U_2, counts the refusals in summary.json, and the run completes."""
+    prepared = prepare(load_scenario("scenarios/paper.yaml"))
+    tamper = lambda bus, name: OutOfBoundsPlans(bus, {3, 7}, 40.0) if name == "2" else bus  # noqa: E731
+    monkeypatch.setattr(inprocess, "simulate",
+                        lambda prepared, on_step: simulate(prepared, on_step, bus_for=tamper))
+    with RunRecorder(tmp_path / "run", prepared, show_progress=False) as recorder:
+        summary, failure = inprocess.record_run(prepared, recorder)
+    assert failure == ""
+    assert summary["steps"] == prepared.protocol.steps
+    assert summary["inputs_refused"] == {"2": 2}
+    assert summary["fallback_steps"] == [[3, "2"], [7, "2"]]
+    assert summary["input_bound_excess"] <= 1e-7 and summary["max_abs_u"] <= 2.5 + 1e-7
+    steps = [json.loads(line) for line in (tmp_path / "run" / "steps.jsonl").read_text().splitlines()]
+    assert [s["fallback_reason"][1] for s in steps if s["k"] in (3, 7)] == ["input outside U_i"] * 2
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["inputs_refused"] == {"2": 2}
+    assert summary["final_state_norm_inf"] < 1e-2

@@ -1,4 +1,5 @@
-"""QP_i (ALGORITHM.md 3.3) against the same QP written independently in cvxpy and solved by Clarabel.
+"""QP_i (docs/algorithm.md, "Online step k, agent i", item 3) against the same QP written independently in cvxpy
+and solved by Clarabel.
 
 The cvxpy problems are parametrised (x, c, alpha, beta) and built once per variant. The
 hypothesis comparisons use a fresh LocalQP per example (the QP itself); reusing one LocalQP

@@ -1,4 +1,5 @@
-"""Online properties of ALGORITHM.md section 6 on closed-loop runs, and the paper's reference figures.
+"""Online properties (docs/algorithm.md, "What is and is not guaranteed") on closed-loop runs, and the paper's
+reference figures.
 
 Each scenario is designed and simulated once per module (in-process run). The checks use the
 recorded steps and recompute everything they assert from the hand-built global matrices of
@@ -274,7 +275,7 @@ def test_paper_theorem3_decrease(paper):
 
 
 def test_chain_theorem3_margin_recorded(chain, record_property):
-    """Not a guarantee on the chain (ALGORITHM.md section 6): only recorded."""
+    """Not a guarantee on the chain (docs/algorithm.md, "What is and is not guaranteed"): only recorded."""
     a = chain.arrays
     margins = [a["J"][k] - stage_cost(a["x"][k], a["u"][k]) - a["J"][k + 1] for k in range(len(chain.records) - 1)]
     assert np.all(np.isfinite(margins))

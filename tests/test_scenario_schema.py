@@ -100,7 +100,7 @@ def test_paper_is_algorithm_md_section_5():
     K, P = given_gains(scn)
     assert np.array_equal(K[1], [[-0.7452, -1.113]])
     assert np.array_equal(P[2], P[3]) and np.array_equal(K[2], K[3])
-    # The reference figures of ALGORITHM.md section 5: rho(A+BK) = 0.697 and (10) margin -0.350.
+    # The printed gains (docs/algorithm.md, "The paper's example, corrected"): rho(A+BK) = 0.697 and (10) margin -0.350.
     Kg, Pg = block_diag(*K), block_diag(*P)
     AK = system.A + system.B @ Kg
     assert max(abs(np.linalg.eigvals(AK))) == pytest.approx(0.697, abs=1e-3)

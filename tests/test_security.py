@@ -31,7 +31,7 @@ from tests.helpers.cli import call, one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = str(ROOT / "scenarios" / "paper.yaml")
-ROLES = ["router", "plant", "agent-1", "agent-2", "agent-3", "agent-4"]
+ROLES = ["router", "plant", "agent-1", "agent-2", "agent-3", "agent-4", "observer"]
 # the paper's chain 1-2-3-4: N_I without I
 NEIGHBOURS = {"1": ["2"], "2": ["1", "3"], "3": ["2", "4"], "4": ["3"]}
 PACKAGE_DIRS = ["dmpc", "agents", "plant", "bus"]
@@ -159,31 +159,31 @@ def test_an_agent_may_publish_only_its_own_keys(cert_dir, agent):
         mine = other == agent
         assert allowed(acl, cn, "ingress", "put", f"dmpc/r/plan/{other}") is mine
         assert allowed(acl, cn, "ingress", "put", f"dmpc/r/ready/{other}") is mine
-        assert not allowed(acl, cn, "ingress", "put", f"dmpc/r/release/{other}")
         assert allowed(acl, cn, "ingress", "liveliness_token", f"dmpc/r/alive/agent-{other}") is mine
     assert not allowed(acl, cn, "ingress", "put", "dmpc/r/control")
+    assert not allowed(acl, cn, "ingress", "put", "dmpc/r/release")
     assert not allowed(acl, cn, "ingress", "liveliness_token", "dmpc/r/alive/plant")
     assert not allowed(acl, cn, "ingress", "delete", f"dmpc/r/plan/{agent}")
     assert not allowed(acl, cn, "ingress", "put", "other/key")
 
 
 @pytest.mark.parametrize("agent", ["1", "2", "3", "4"])
-def test_an_agent_subscribes_and_receives_only_its_release_and_its_neighbours_plans(cert_dir, agent):
+def test_an_agent_subscribes_and_receives_only_the_release_and_its_neighbours_plans(cert_dir, agent):
     acl = read_acl(cert_dir)
     cn = f"agent-{agent}"
     for flow, message in (("ingress", "declare_subscriber"), ("egress", "put")):
-        assert allowed(acl, cn, flow, message, f"dmpc/r/release/{agent}")
+        assert allowed(acl, cn, flow, message, "dmpc/r/release")
         assert allowed(acl, cn, flow, message, "dmpc/r/control")
         for other in NEIGHBOURS:
             assert allowed(acl, cn, flow, message, f"dmpc/r/plan/{other}") is (other in NEIGHBOURS[agent])
-            assert allowed(acl, cn, flow, message, f"dmpc/r/release/{other}") is (other == agent)
+            assert not allowed(acl, cn, flow, message, f"dmpc/r/release/{other}")
             assert not allowed(acl, cn, flow, message, f"dmpc/r/ready/{other}")
     assert allowed(acl, cn, "ingress", "declare_liveliness_subscriber", "dmpc/r/alive/*")
 
 
 def test_plant_router_and_strangers(cert_dir):
     acl = read_acl(cert_dir)
-    for key in ("dmpc/r/release/3", "dmpc/r/control", "dmpc/r/plan/2"):  # plans: relayed as the star's router
+    for key in ("dmpc/r/release", "dmpc/r/control", "dmpc/r/plan/2"):  # plans: relayed as the star's router
         assert allowed(acl, "plant", "ingress", "put", key)
     assert not allowed(acl, "plant", "ingress", "put", "dmpc/r/ready/1")
     assert allowed(acl, "plant", "ingress", "declare_subscriber", "dmpc/r/plan/*")
@@ -191,7 +191,7 @@ def test_plant_router_and_strangers(cert_dir):
     assert allowed(acl, "router", "egress", "put", "dmpc/r/plan/1")
     for message in ("put", "declare_subscriber", "liveliness_token"):
         assert not allowed(acl, "intruder", "ingress", message, "dmpc/r/plan/1")
-        assert not allowed(acl, "intruder", "egress", message, "dmpc/r/release/1")
+        assert not allowed(acl, "intruder", "egress", message, "dmpc/r/release")
 
 
 def test_acl_bound_to_one_run(prepared):
@@ -314,6 +314,27 @@ def test_agent_reports_are_merged_into_the_summary(tmp_path):
                                        "duplicates": 1, "solves": 5}}
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
     assert summary["rejected"] == {"1": 2}
+    assert "security" not in summary  # plain TCP
+
+
+@pytest.mark.parametrize("acl", [True, False])
+def test_run_over_tls_records_its_security_in_the_summary(tmp_path, prepared, cert_dir, acl):
+    import shutil
+
+    from dmpc.runtime.launcher import child_commands, merge_agent_reports
+
+    certs = tmp_path / "certs"
+    shutil.copytree(cert_dir, certs)
+    if not acl:
+        (certs / "acl.json").unlink()
+    out = tmp_path / "run"
+    out.mkdir()
+    children = child_commands(prepared, out, out / "scenario.yaml", out / "design.json", "r", 7447, 30.0, tls_dir=certs)
+    (out / "summary.json").write_text(json.dumps({"steps": 3}))
+    summary = merge_agent_reports(out, children)
+    assert summary["security"] == {"tls": True, "mutual_authentication": True, "access_control": acl,
+                                   "certificates": str(certs)}
+    assert json.loads((out / "summary.json").read_text()) == summary
 
 
 # ---------------------------------------------------------------------------- counting the drops

@@ -187,3 +187,17 @@ def test_coupling_feedforward_is_linear_in_the_assumptions():
     np.testing.assert_allclose(both, summed, atol=1e-12)
     for t in range(N):
         np.testing.assert_allclose(both[t], A @ (z1[t] + z2[t]) + B @ (v1[t] + v2[t]), atol=1e-12)
+
+
+def test_the_usual_one_step_shift_equals_the_continuation_exactly():
+    """assumed_trajectory and candidate_plan take a shortcut for a plan of the step before; it
+    must give the continuation's numbers bit for bit (run and simulate must agree to 1e-9)."""
+    rng = np.random.default_rng(7)
+    plan = Plan(4, 2, rng.normal(size=(N + 1, 2)), rng.normal(size=(N, 1)))
+    z, v = continued(plan, N + 1, GAMMA, K)
+    zhat, vhat = assumed_trajectory(plan, 5, X_NOW, N, GAMMA, K)
+    expected = z[1:N + 1].copy()
+    expected[0] = X_NOW
+    assert np.array_equal(zhat, expected) and np.array_equal(vhat, v[1:N + 1])
+    zc, vc = candidate_plan(plan, 5, None, N, GAMMA, K)
+    assert np.array_equal(zc, z[1:]) and np.array_equal(vc, v[1:])

@@ -13,7 +13,7 @@ from dmpc.bus.session import (
     free_tcp_port,
     session_config,
 )
-from dmpc.bus.zenoh_bus import ZenohBus
+from dmpc.bus.zenoh_bus import POLL, ZenohBus
 
 from tests import helpers_zenoh as hz
 
@@ -284,3 +284,70 @@ def test_round_trip_between_processes(mode, capsys):
         assert len(rtts) == 2000
     finally:
         hz.stop_process(proc)
+
+
+# -- hot subscriptions -----------------------------------------------------------------------
+
+
+def test_hot_messages_arrive_in_order_on_the_run_thread():
+    with hz.peer_pair() as (a, b):
+        got, threads = [], set()
+
+        def handler(key, payload):
+            got.append((key, payload))
+            threads.add(threading.get_ident())
+
+        b.subscribe("t/hot/*", handler, hot=True)
+        assert a.wait_for_subscribers("t/hot/x", 5)
+        payloads = [i.to_bytes(2, "little") for i in range(300)] + [b""]  # an empty payload is a message too
+        for payload in payloads:
+            a.publish("t/hot/x", payload)
+        assert b.run(lambda: len(got) == len(payloads), timeout=10)
+        assert got == [("t/hot/x", p) for p in payloads]
+        assert threads == {threading.get_ident()} and b.dropped == 0
+
+
+def test_a_run_waiting_on_a_hot_key_wakes_for_everything_else():
+    """Queued messages, liveliness, timers and calls from other threads end the wait at once, not
+    at the next POLL."""
+    with hz.peer_pair() as (a, b):
+        events = []
+        b.subscribe("t/hot", lambda k, p: events.append("hot"), hot=True)
+        b.subscribe("t/cold", lambda k, p: events.append("cold"))
+        b.watch_alive("t/alive/*", lambda k, alive: events.append("alive"))
+        assert a.wait_for_subscribers("t/cold", 5)
+        b.run(lambda: False, timeout=0.3)  # settle; run is now idle on the hot channel
+
+        def waited(action, label) -> float:
+            t0 = time.monotonic()
+            action()
+            assert b.run(lambda: label in events, timeout=2), events
+            return time.monotonic() - t0
+
+        assert waited(lambda: a.publish("t/cold", b"1"), "cold") < 0.5 * POLL
+        assert waited(lambda: a.declare_alive("t/alive/a"), "alive") < 0.5 * POLL
+        assert waited(lambda: b.call_later(0.01, lambda: events.append("timer")), "timer") < 0.01 + 0.5 * POLL
+        later = threading.Timer(0.02, lambda: b.call_later(0.0, lambda: events.append("other thread")))
+        later.start()
+        assert waited(lambda: None, "other thread") < 0.02 + 0.5 * POLL
+        a.publish("t/hot", b"2")
+        assert b.run(lambda: "hot" in events, timeout=2)
+
+
+def test_expect_names_the_hot_key_to_wait_on():
+    with hz.peer_pair() as (a, b):
+        got = []
+        b.subscribe("t/first", lambda k, p: got.append(k), hot=True)
+        b.subscribe("t/second", lambda k, p: got.append(k), hot=True)
+        assert a.wait_for_subscribers("t/second", 5)
+        b.run(lambda: False, timeout=0.2)
+        b.expect("t/second")
+        t0 = time.monotonic()
+        a.publish("t/second", b"x")
+        assert b.run(lambda: got == ["t/second"], timeout=2)
+        assert time.monotonic() - t0 < 0.5 * POLL
+        b.expect(None)
+        a.publish("t/second", b"y")  # not waited on: read once run wakes (here at the latest after POLL)
+        a.publish("t/first", b"z")
+        assert b.run(lambda: len(got) == 3, timeout=2)
+        assert sorted(got[1:]) == ["t/first", "t/second"]

@@ -1,7 +1,7 @@
 """Offline design: gains, terminal set, sigma and tube tightening, assembled and reported."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -11,7 +11,7 @@ from dmpc.design.terminal_set import TerminalSet, maximal_admissible_set
 from dmpc.design.tubes import RevisionBound, Tightening, robust_tightening
 from dmpc.system import CoupledSystem
 
-__all__ = ["Design", "DesignError", "design_from_json", "GainDesign", "RevisionBound", "TerminalSet", "Tightening", "design_system"]
+__all__ = ["Design", "DesignError", "assemble", "design_gains", "design_from_json", "GainDesign", "RevisionBound", "TerminalSet", "Tightening", "design_system"]
 
 
 @dataclass(frozen=True)
@@ -27,6 +27,9 @@ class Design:
     alpha0 : ndarray, shape (n,)
     beta0 : float
     tube : str
+    start : dict or None
+        How ``horizon: auto`` and ``beta0: auto`` were resolved and what the start check found
+        (reported in design.json beside the design; not part of it, nor of its digest).
     """
 
     gains: GainDesign
@@ -36,6 +39,7 @@ class Design:
     alpha0: np.ndarray
     beta0: float
     tube: str
+    start: dict | None = field(default=None, compare=False)
 
     @property
     def sigma0(self) -> float:
@@ -50,6 +54,7 @@ class Design:
             "rho": g.rho,
             "lyapunov_margin": g.lyapunov_margin,
             "lyapunov_tolerance": g.lyapunov_tolerance,
+            "lyapunov_margin_thin": g.margin_thin,
             "K": [k.tolist() for k in g.K],
             "P": [p.tolist() for p in g.P],
             "omega_rows": self.terminal.rows,
@@ -62,6 +67,37 @@ class Design:
             "tube": self.tube,
             "terminal_margin": [t.terminal_margin.tolist() for t in self.tightening],
         }
+
+    def with_start(self, start: dict) -> "Design":
+        """The same design with the start report ``start``."""
+        return replace(self, start=start)
+
+
+def design_gains(system: CoupledSystem, gains: str,
+                 given: tuple[list[np.ndarray], list[np.ndarray]] | None = None) -> tuple[GainDesign, TerminalSet]:
+    """The gains (``lmi``, ``lqr`` or ``given``, verified) and the terminal set X^f they give."""
+    if gains == "lmi":
+        g = lmi_gains(system)
+    elif gains == "lqr":
+        g = lqr_gains(system)
+    elif gains == "given":
+        if given is None:
+            raise DesignError("gains 'given' needs K and P for every subsystem")
+        g = verify_gains(system, given[0], given[1], "given")
+    else:
+        raise DesignError(f"unknown gain design method {gains!r} (expected lmi, lqr or given)")
+    return g, maximal_admissible_set(system, g.K)
+
+
+def assemble(system: CoupledSystem, gains: GainDesign, terminal: TerminalSet, *, horizon: int, alpha0: np.ndarray,
+             beta0: float, tube: str = "none", revision_bounds: dict[int, RevisionBound] | None = None,
+             disturbance_bounds: dict[int, np.ndarray] | None = None) -> Design:
+    """A Design from its gains and terminal set at one horizon (checks beta0 and the tubes).
+
+    ``disturbance_bounds``: per subsystem index, the bound (n_i,) of an additive plant
+    disturbance, added to the tube's W_i when ``tube`` is ``robust``.
+    """
+    return _assemble(system, gains, terminal, horizon, alpha0, beta0, tube, revision_bounds, disturbance_bounds)
 
 
 def design_system(system: CoupledSystem, *, gains: str, horizon: int, alpha0: np.ndarray, beta0: float,
@@ -81,22 +117,13 @@ def design_system(system: CoupledSystem, *, gains: str, horizon: int, alpha0: np
     tube : {"none", "robust"}
     revision_bounds : dict subsystem index -> RevisionBound, required for ``tube="robust"``
     """
-    if gains == "lmi":
-        g = lmi_gains(system)
-    elif gains == "lqr":
-        g = lqr_gains(system)
-    elif gains == "given":
-        if given is None:
-            raise DesignError("gains 'given' needs K and P for every subsystem")
-        g = verify_gains(system, given[0], given[1], "given")
-    else:
-        raise DesignError(f"unknown gain design method {gains!r} (expected lmi, lqr or given)")
-    terminal = maximal_admissible_set(system, g.K)
+    g, terminal = design_gains(system, gains, given)
     return _assemble(system, g, terminal, horizon, alpha0, beta0, tube, revision_bounds)
 
 
 def design_from_json(system: CoupledSystem, data: dict, *, horizon: int, alpha0: np.ndarray, beta0: float,
-                     tube: str = "none", revision_bounds: dict[int, RevisionBound] | None = None) -> Design:
+                     tube: str = "none", revision_bounds: dict[int, RevisionBound] | None = None,
+                     disturbance_bounds: dict[int, np.ndarray] | None = None) -> Design:
     """Rebuild a design from ``design.json`` content without re-solving the LMI or the LPs.
 
     The gains are verified again (cheap), the tubes recomputed; DesignError if the file does
@@ -118,11 +145,14 @@ def design_from_json(system: CoupledSystem, data: dict, *, horizon: int, alpha0:
         raise DesignError(f"design file: made for horizon {data.get('horizon')}, the scenario has {horizon}")
     g = verify_gains(system, K, P, method, objective)
     terminal = TerminalSet(omega=omega, t_star=t_star)
-    return _assemble(system, g, terminal, horizon, alpha0, beta0, tube, revision_bounds)
+    design = _assemble(system, g, terminal, horizon, alpha0, beta0, tube, revision_bounds, disturbance_bounds)
+    start = data.get("start")
+    return design.with_start(start) if isinstance(start, dict) else design
 
 
 def _assemble(system: CoupledSystem, g: GainDesign, terminal: TerminalSet, horizon: int, alpha0: np.ndarray,
-              beta0: float, tube: str, revision_bounds: dict[int, RevisionBound] | None) -> Design:
+              beta0: float, tube: str, revision_bounds: dict[int, RevisionBound] | None,
+              disturbance_bounds: dict[int, np.ndarray] | None = None) -> Design:
     sigma0 = terminal.sigma(alpha0)
     if beta0 > sigma0 + 1e-12:
         raise DesignError(f"terminal: beta0 = {beta0:.6g} exceeds sigma(alpha0) = {sigma0:.6g}: the initial "
@@ -130,7 +160,8 @@ def _assemble(system: CoupledSystem, g: GainDesign, terminal: TerminalSet, horiz
     tightening = []
     for i, s in enumerate(system.subsystems):
         if tube == "robust":
-            t = robust_tightening(system, i, g.K[i], horizon, revision_bounds or {})
+            t = robust_tightening(system, i, g.K[i], horizon, revision_bounds or {},
+                                  (disturbance_bounds or {}).get(i))
             if np.any(t.terminal_margin >= beta0):
                 raise DesignError(
                     f"tube: robust: the tightened terminal box of subsystem {s.name} is empty at k = 0 "

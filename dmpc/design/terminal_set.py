@@ -1,19 +1,26 @@
-"""The terminal set X^f = {x : Omega x <= 1} and sigma(alpha) (ALGORITHM.md 2.2-2.3).
+"""The terminal set X^f = {x : Omega x <= 1} and sigma(alpha) (docs/algorithm.md, "Offline design").
 
 X^f is the maximal admissible set of x+ = A_K x under x in X and K x in U, computed with the
 Gilbert-Tan recursion: rows H A_K^t are added for t = 1, 2, ... until every new row is
-redundant over the current set (one LP per row, HiGHS), then redundant rows are removed.
+redundant over the current set, then redundant rows are removed. The rows are sparse (a row of
+H A_K^t reaches only the subsystems t couplings away from its own), and each redundancy test
+is decided by LPs on the variables near the row (:mod:`dmpc.design.redundancy`), which give
+the same answers as one LP over the whole set.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+import scipy.sparse as sp
 
 from dmpc.design.errors import DesignError
-from dmpc.system import CoupledSystem, block_diag
+from dmpc.design.redundancy import SparseRows
+from dmpc.system import CoupledSystem
 
-REDUNDANCY_TOL = 1e-9
+DENSE_SIGMA = 50_000
+"""sigma uses the dense Omega up to this many entries (faster for small sets), the sparse one above."""
 
 
 @dataclass(frozen=True)
@@ -34,10 +41,15 @@ class TerminalSet:
     def rows(self) -> int:
         return self.omega.shape[0]
 
-    @property
+    @cached_property
     def row_norms(self) -> np.ndarray:
         """||Omega_l||_1 per row, shape (rows,)."""
         return np.abs(self.omega).sum(axis=1)
+
+    @cached_property
+    def sparse(self) -> sp.csr_matrix:
+        """Omega as a sparse matrix (its rows reach a few subsystems each)."""
+        return sp.csr_matrix(self.omega)
 
     def sigma(self, alpha: np.ndarray) -> float:
         """Largest theta with the cube ||x - alpha||_inf <= theta inside X^f.
@@ -46,41 +58,56 @@ class TerminalSet:
         ----------
         alpha : ndarray, shape (n,)
         """
-        return float(np.min((1.0 - self.omega @ alpha) / self.row_norms))
+        omega = self.omega if self.omega.size <= DENSE_SIGMA else self.sparse
+        return float(np.min((1.0 - omega @ alpha) / self.row_norms))
 
     def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
         return bool(np.all(self.omega @ x <= 1.0 + tol))
 
 
-def admissible_rows(system: CoupledSystem, K: list[np.ndarray]) -> np.ndarray:
-    """Constraint rows of X and K x in U normalised to ``G x <= 1``, shape (q, n).
+def admissible_rows(system: CoupledSystem, K: list[np.ndarray]) -> sp.csr_matrix:
+    """Constraint rows of X and K x in U normalised to ``G x <= 1``, sparse, shape (q, n).
 
     Raises DesignError if the origin is not in the interior of a constraint set.
     """
-    Kg = block_diag(*K)
-    rows = []
+    blocks = []
     for i, s in enumerate(system.subsystems):
-        G, g = s.input_set.one_sided()
-        _append_normalised(rows, G @ Kg[system.us(i)], g, f"input set of subsystem {s.name}")
+        parts = [_normalised(*s.input_set.one_sided(), f"input set of subsystem {s.name}", K[i])]
         if s.state_set is not None:
-            G, g = s.state_set.one_sided()
-            full = np.zeros((G.shape[0], system.n))
-            full[:, system.xs(i)] = G
-            _append_normalised(rows, full, g, f"state set of subsystem {s.name}")
-    if not rows:
+            parts.append(_normalised(*s.state_set.one_sided(), f"state set of subsystem {s.name}"))
+        rows = np.vstack(parts)
+        if rows.shape[0]:
+            lead = system.state_offsets[i]
+            blocks.append(sp.hstack([sp.csr_matrix((rows.shape[0], lead)), sp.csr_matrix(rows),
+                                     sp.csr_matrix((rows.shape[0], system.n - lead - s.n))], format="csr"))
+    if not blocks:
         raise DesignError("the terminal set is unbounded: there are no input or state constraints")
-    return np.array(rows)
+    return sp.vstack(blocks, format="csr")
 
 
-def _append_normalised(rows: list, G: np.ndarray, g: np.ndarray, what: str) -> None:
+def _normalised(G: np.ndarray, g: np.ndarray, what: str, K: np.ndarray | None = None) -> np.ndarray:
+    """The rows G (on the input if K is given, then mapped by K) over their bounds g, zero rows dropped."""
+    rows = []
     for r in range(G.shape[0]):
         if g[r] <= 0:
             raise DesignError(f"{what}: the origin is not in its interior (row {r} has bound {g[r]:.4g} <= 0)")
-        if np.any(G[r] != 0):
-            rows.append(G[r] / g[r])
+        row = G[r] @ K if K is not None else G[r]
+        if np.any(row != 0):
+            rows.append(row / g[r])
+    return np.array(rows).reshape(len(rows), K.shape[1] if K is not None else G.shape[1])
 
 
-def maximal_admissible_set(system: CoupledSystem, K: list[np.ndarray], max_t: int = 500) -> TerminalSet:
+def closed_loop(system: CoupledSystem, K: list[np.ndarray]) -> sp.csr_matrix:
+    """A_K = A + B diag(K_i), sparse, shape (n, n)."""
+    return sp.csr_matrix(system.A) + sp.csr_matrix(system.B) @ sp.block_diag(K, format="csr")
+
+
+LOCAL_ABOVE = 64
+"""With more state variables than this, redundancy is decided on each row's neighbourhood by default."""
+
+
+def maximal_admissible_set(system: CoupledSystem, K: list[np.ndarray], max_t: int = 500,
+                           local: bool | None = None) -> TerminalSet:
     """Gilbert-Tan maximal admissible set of A + BK under the system's constraints.
 
     Parameters
@@ -89,58 +116,42 @@ def maximal_admissible_set(system: CoupledSystem, K: list[np.ndarray], max_t: in
     K : list of ndarray, shapes (m_i, n_i)
     max_t : int
         Give up (DesignError) if the recursion has not stopped after this many powers.
+    local : bool, optional
+        Decide each redundancy test on the variables near the row, or with one LP over the whole
+        set (the plain method: the same answers, in time growing about as M^2). By default the
+        first above ``LOCAL_ABOVE`` state variables, the second up to it (where it is faster).
     """
-    AK = system.A + system.B @ block_diag(*K)
+    if local is None:
+        local = system.n > LOCAL_ABOVE
+    AK = closed_loop(system, K)
     base = admissible_rows(system, K)
     omega = _drop_duplicates(base)
     power = base
     for t in range(1, max_t + 1):
-        power = power @ AK
-        new_rows = [row for row in _drop_duplicates(power) if not _is_redundant(omega, row)]
+        power = (power @ AK).tocsr()
+        current = SparseRows(omega, local)
+        candidates = _drop_duplicates(power)
+        implied = current.implied([candidates[l] for l in range(candidates.shape[0])])
+        new_rows = [l for l, redundant in enumerate(implied) if not redundant]
         if not new_rows:
-            return TerminalSet(omega=remove_redundant_rows(omega), t_star=t - 1)
-        omega = np.vstack([omega, new_rows])
+            kept = SparseRows(omega, local).irredundant()
+            return TerminalSet(omega=omega[kept].toarray(), t_star=t - 1)
+        omega = sp.vstack([omega, candidates[new_rows]], format="csr")
     raise DesignError(f"terminal set: the Gilbert-Tan recursion did not stop within t = {max_t} "
                       f"({omega.shape[0]} rows); is A+BK stable and (A+BK, constraints) observable?")
 
 
-def _drop_duplicates(rows: np.ndarray) -> np.ndarray:
-    _, idx = np.unique(np.round(rows, 12), axis=0, return_index=True)
-    return rows[np.sort(idx)]
-
-
-def _support(omega: np.ndarray, c: np.ndarray, cap: float | None = None) -> float:
-    """max c x s.t. omega x <= 1 (and c x <= cap if given); +inf if unbounded."""
-    from scipy.optimize import linprog  # offline only: keeps agent processes small
-
-    A_ub, b_ub = omega, np.ones(omega.shape[0])
-    if cap is not None:
-        A_ub = np.vstack([omega, c])
-        b_ub = np.append(b_ub, cap)
-    attempts = ({"method": "highs"}, {"method": "highs", "options": {"presolve": False}},
-                {"method": "highs-ipm"}, {"method": "highs-ds", "options": {"presolve": False}})
-    for kwargs in attempts:
-        res = linprog(-c, A_ub=A_ub, b_ub=b_ub, bounds=(None, None), **kwargs)
-        if res.status == 0:
-            return float(-res.fun)
-        if res.status == 3:
-            return np.inf
-        # status 2 (infeasible) cannot be right (0 is feasible): HiGHS mislabels unbounded
-        # problems this way with presolve on, so try again without it / with another method
-    return np.inf
-
-
-def _is_redundant(omega: np.ndarray, row: np.ndarray) -> bool:
-    return _support(omega, row) <= 1.0 + REDUNDANCY_TOL
-
-
-def remove_redundant_rows(omega: np.ndarray) -> np.ndarray:
-    """Drop rows implied by the others (one LP per row, capped so it stays bounded)."""
-    keep = list(range(omega.shape[0]))
-    for l in range(omega.shape[0]):
-        others = [r for r in keep if r != l]
-        if not others:
-            continue
-        if _support(omega[others], omega[l], cap=2.0) <= 1.0 + REDUNDANCY_TOL:
-            keep = others
-    return omega[keep]
+def _drop_duplicates(rows: sp.csr_matrix) -> sp.csr_matrix:
+    """The rows, each kept only at its first occurrence (compared rounded to 12 decimals)."""
+    rows = sp.csr_matrix(rows)
+    rows.sort_indices()
+    seen, keep = set(), []
+    for l in range(rows.shape[0]):
+        start, end = rows.indptr[l], rows.indptr[l + 1]
+        values = np.round(rows.data[start:end], 12)
+        nonzero = values != 0
+        key = (rows.indices[start:end][nonzero].tobytes(), (values[nonzero] + 0.0).tobytes())
+        if key not in seen:
+            seen.add(key)
+            keep.append(l)
+    return rows[keep]

@@ -1,4 +1,4 @@
-"""Constraint tightening by the error tube E_i(t) (ALGORITHM.md 2.4).
+"""Constraint tightening by the error tube E_i(t) (docs/algorithm.md, "Offline design", tubes E_i).
 
 E_i(t) is the reachable set of e+ = Gamma_i e + w, w in W_i, e(0) = 0, with
 Gamma_i = A_ii + B_ii K_i. Only support functions are needed:
@@ -6,7 +6,8 @@ Gamma_i = A_ii + B_ii K_i. Only support functions are needed:
     h_E(t)(d) = sum_{s<t} h_W((Gamma_i^s)^T d),
     h_W(d)    = sum_{j != i} xbar_j^T |A_ij^T d| + ubar_j^T |B_ij^T d|,
 
-where (xbar_j, ubar_j) bound neighbour j's plan revisions. With ``tube: none`` E_i = {0}.
+where (xbar_j, ubar_j) bound neighbour j's plan revisions. An additive disturbance on the
+plant, |w_i| <= wbar_i, adds wbar_i^T |d| to h_W. With ``tube: none`` E_i = {0}.
 """
 from __future__ import annotations
 
@@ -49,8 +50,12 @@ class RevisionBound:
     input: np.ndarray
 
 
-def disturbance_support(system: CoupledSystem, i: int, bounds: dict[int, RevisionBound]):
-    """Return h_W for subsystem i as a function of a direction d of shape (n_i,)."""
+def disturbance_support(system: CoupledSystem, i: int, bounds: dict[int, RevisionBound],
+                        additive: np.ndarray | None = None):
+    """Return h_W for subsystem i as a function of a direction d of shape (n_i,).
+
+    ``additive`` (shape (n_i,)) bounds an additive disturbance |w_i| <= additive on the plant.
+    """
     terms = []
     for j in system.neighbours[i]:
         if j == i:
@@ -63,20 +68,24 @@ def disturbance_support(system: CoupledSystem, i: int, bounds: dict[int, Revisio
                               f"(it couples into subsystem {system.subsystems[i].name})")
         terms.append((Aij, Bij, bounds[j].state, bounds[j].input))
 
+    wbar = None if additive is None else np.asarray(additive, float)
+
     def h_W(d: np.ndarray) -> float:
-        return float(sum(xb @ np.abs(A.T @ d) + ub @ np.abs(B.T @ d) for A, B, xb, ub in terms))
+        coupled = sum(xb @ np.abs(A.T @ d) + ub @ np.abs(B.T @ d) for A, B, xb, ub in terms)
+        return float(coupled + (0.0 if wbar is None else wbar @ np.abs(d)))
 
     return h_W
 
 
 def robust_tightening(system: CoupledSystem, i: int, K_i: np.ndarray, N: int,
-                      bounds: dict[int, RevisionBound]) -> Tightening:
+                      bounds: dict[int, RevisionBound], additive: np.ndarray | None = None) -> Tightening:
     """Support-function tightening of subsystem i's constraints over the horizon.
 
+    ``additive`` (shape (n_i,)): the bound of an additive plant disturbance on subsystem i.
     Raises DesignError naming the set and step if a tightened set is empty.
     """
     s = system.subsystems[i]
-    h_W = disturbance_support(system, i, bounds)
+    h_W = disturbance_support(system, i, bounds, additive)
     Gamma = s.A + s.B @ K_i
     powers = [np.eye(s.n)]
     for _ in range(N):

@@ -12,6 +12,7 @@ The offline design is computed once and reused by every method (they share it by
 | ``feasible`` | every QP of every step solved |
 | ``fallbacks`` | fallbacks applied (agent-steps) |
 | ``solve_time_median_s`` | median QP solve time |
+| ``verdict``, ``failures`` | the run's verdict (``ok`` or ``failed``) and the kinds of its failures |
 """
 from __future__ import annotations
 
@@ -65,6 +66,8 @@ def method_entry(run_dir: Path, out: Path, summary: dict) -> dict:
         "feasible": bool(summary["feasible"]),
         "fallbacks": int(summary["fallbacks"]),
         "solve_time_median_s": summary.get("solve_time_median_s"),
+        "verdict": summary.get("verdict"),
+        "failures": list(dict.fromkeys(f["kind"] for f in summary.get("failures", []))),
     }
 
 
@@ -123,15 +126,18 @@ def comparison_rows(data: dict) -> list[list[str]]:
     for method, e in data["methods"].items():
         ratio = ratios[method]
         solve = e["solve_time_median_s"]
-        rows.append([method, "yes" if e["feasible"] else "no", str(e["fallbacks"]), f"{e['closed_loop_cost']:.4f}",
+        verdict = e.get("verdict") or "-"
+        if e.get("failures"):
+            verdict = f"failed ({', '.join(e['failures'])})"
+        rows.append([method, verdict, "yes" if e["feasible"] else "no", str(e["fallbacks"]), f"{e['closed_loop_cost']:.4f}",
                      "-" if ratio is None else f"{ratio:.4f}",
                      "never" if e["steps_to_1e-3"] is None else str(e["steps_to_1e-3"]),
                      "-" if solve is None else f"{solve * 1e6:.0f}"])
     return rows
 
 
-COMPARISON_HEADER = ["method", "feasible", "fallbacks", "cost", "/ central", "k to 1e-3", "QP us"]
-COMPARISON_LEGEND = ("feasible: every QP solved; cost: closed-loop sum of x'Qx + u'Ru; / central: that cost over the "
+COMPARISON_HEADER = ["method", "verdict", "feasible", "fallbacks", "cost", "/ central", "k to 1e-3", "QP us"]
+COMPARISON_LEGEND = ("verdict: ok, or the failures found (see each run's summary.json); feasible: every QP solved; cost: closed-loop sum of x'Qx + u'Ru; / central: that cost over the "
                      "centralised one; k to 1e-3: first k with ||x(k)||_inf < 1e-3; QP us: median solve time")
 
 

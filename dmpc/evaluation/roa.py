@@ -142,7 +142,10 @@ def region_of_attraction(scenario, horizons: list[int], methods: list[str], samp
     """
     from dmpc.runtime.setup import prepare
 
-    base = prepare(scenario)
+    # the samples replace the scenario's x(0): design at a fixed horizon, without its start check
+    unchecked = scenario.model_copy(update={"horizon": horizons[0], "design": scenario.design.model_copy(
+        update={"check_start": False})})
+    base = prepare(unchecked)
     design_data = base.design_json()
     R = default_box(base.system.x0) if box is None else float(box)
     states = sample_states(base.system.n, samples, R, seed)

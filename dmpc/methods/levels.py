@@ -1,4 +1,5 @@
-"""Levels of the ellipsoid terminal sets {x_i : x_i' P_i x_i <= r_i} (ALGORITHM.md section 4).
+"""Levels of the ellipsoid terminal sets {x_i : x_i' P_i x_i <= r_i}
+(docs/methods.md, "`ellipsoid` and `ellipsoid-adaptive`").
 
 Static common level: the product of the ellipsoids lies in X^f = {x : Omega x <= 1} if, for
 every row l, sum_i sqrt(r_i) ||Omega_{l,i}||_{P_i^-1} <= 1 (the largest value of Omega_{l,i} x_i

@@ -72,6 +72,11 @@ class TerminalPolicy(ABC):
     def release(self, state: TerminalState, i: int) -> tuple[np.ndarray, float]:
         """The (centre (n_i,), size) released to agent i."""
 
+    def release_all(self, state: TerminalState) -> tuple[np.ndarray, np.ndarray]:
+        """Every agent's release at once: centres (n,), agent i's on its own coordinates, and sizes (M,)."""
+        parts = [self.release(state, i) for i in range(self.system.M)]
+        return np.concatenate([c for c, _ in parts]), np.array([size for _, size in parts], dtype=float)
+
     @abstractmethod
     def fallback_terminal(self, state: TerminalState, i: int, candidate_end: np.ndarray) -> np.ndarray:
         """eta_i for an agent that fell back; ``candidate_end`` (n_i,) ends its shifted candidate."""
@@ -130,8 +135,12 @@ class BoxPolicy(TerminalPolicy):
     def release(self, state: TerminalState, i: int) -> tuple[np.ndarray, float]:
         return state.alpha[self.system.xs(i)].copy(), state.beta
 
+    def release_all(self, state: TerminalState) -> tuple[np.ndarray, np.ndarray]:
+        return state.alpha.copy(), np.full(self.system.M, state.beta)
+
     def fallback_terminal(self, state: TerminalState, i: int, candidate_end: np.ndarray) -> np.ndarray:
-        # the shifted candidate ends at alpha_i(k) = ((A+BK) eta(k-1))_i (ALGORITHM.md 3.7)
+        # the shifted candidate ends at alpha_i(k) = ((A+BK) eta(k-1))_i
+        # (docs/algorithm.md, "Online step k, agent i", item 7)
         return state.alpha[self.system.xs(i)].copy()
 
     def joint_terminal(self, state: TerminalState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -142,7 +151,8 @@ class BoxPolicy(TerminalPolicy):
 class EllipsoidPolicy(TerminalPolicy):
     """Terminal ellipsoids z_i(N)' P_i z_i(N) <= r_i, imposed through inscribed polytopes.
 
-    The levels start at the static common level (ALGORITHM.md section 4). ``adaptive``: they
+    The levels start at the static common level
+    (docs/methods.md, "`ellipsoid` and `ellipsoid-adaptive`"). ``adaptive``: they
     move by r_i(k+1) = r_i(k) + eta' Gamma_i eta and are scaled back into X^f when needed
     (:mod:`dmpc.methods.levels`); otherwise they stay.
 
@@ -183,6 +193,9 @@ class EllipsoidPolicy(TerminalPolicy):
 
     def release(self, state: TerminalState, i: int) -> tuple[np.ndarray, float]:
         return np.zeros(self.system.subsystems[i].n), float(state.r[i])
+
+    def release_all(self, state: TerminalState) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(self.system.n), np.array(state.r, dtype=float)
 
     def fallback_terminal(self, state: TerminalState, i: int, candidate_end: np.ndarray) -> np.ndarray:
         return np.asarray(candidate_end, float).copy()

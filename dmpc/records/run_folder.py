@@ -14,24 +14,38 @@ from pathlib import Path
 import numpy as np
 
 from dmpc.plant.barrier import StepRecord
+from dmpc.records.columns import ROWS_FILE, StepColumns, StepTally, write_npz
+from dmpc.records.verdict import RunLimits, judge, state_bound_excess
 from dmpc.system import CoupledSystem
 
 STEP_LOG = "steps.jsonl"
+TRAJECTORY = "trajectory.npz"
+SUMMARY = "summary.json"
 
 
 class RunFolderError(Exception):
     """The folder cannot be used for a new run."""
 
 
-def _jsonable(value):
+class RecordWriteError(RunFolderError):
+    """A record could not be written during or at the end of a run (disk full, read-only, ...)."""
+
+
+def jsonable(value):
+    """``value`` as JSON-ready data: arrays as lists, NaN and infinities as None."""
+    kind = type(value)  # plain scalars first: a step line is mostly made of them
+    if kind is float:
+        return value if math.isfinite(value) else None
+    if kind is int or kind is str or kind is bool or value is None:
+        return value
     if isinstance(value, np.ndarray):
         return _array_json(value)
     if isinstance(value, (list, tuple)):
         if value and all(isinstance(v, np.ndarray) for v in value):
             return [_array_json(v) for v in value]
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (float, np.floating)):
         v = float(value)
         return None if math.isnan(v) or math.isinf(v) else v
@@ -53,7 +67,7 @@ def _array_json(a: np.ndarray) -> list:
 
 def write_json(path: Path, data) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(_jsonable(data), indent=2) + "\n")
+    tmp.write_text(json.dumps(jsonable(data), indent=2) + "\n")
     os.replace(tmp, path)
 
 
@@ -76,6 +90,14 @@ def claim_folder(path: Path, marker: str, holds: str) -> None:
 class RunFolder:
     """Writes one run's records.
 
+    Memory does not grow with the run's length: each step goes to ``steps.jsonl`` and, as one
+    row of numbers, to the rows file of :class:`~dmpc.records.columns.StepColumns`; the arrays
+    are built from those rows at the end.
+
+    A write that fails (disk full, read-only, permission) raises RunFolderError naming the file
+    and the system's reason; the step log is cut back to its last complete line first, so every
+    completed step stays readable.
+
     Parameters
     ----------
     path : path-like
@@ -87,88 +109,139 @@ class RunFolder:
         self.path = Path(path)
         claim_folder(self.path, STEP_LOG, "a run")
         self.system = system
-        self.records: list[StepRecord] = []
-        self._log = open(self.path / STEP_LOG, "a", encoding="utf-8")
+        try:
+            self._log = open(self.path / STEP_LOG, "a", encoding="utf-8")
+            self.columns = StepColumns(system, self.path / ROWS_FILE)
+        except OSError as exc:
+            raise write_error(exc, self.path / STEP_LOG, RunFolderError) from None
+
+    @property
+    def steps(self) -> int:
+        """Steps recorded so far."""
+        return self.columns.tally.steps
 
     def write_text(self, name: str, text: str) -> None:
-        (self.path / name).write_text(text)
+        """Write a file of the run folder before the run (RunFolderError if it cannot be written)."""
+        try:
+            (self.path / name).write_text(text)
+        except OSError as exc:
+            raise write_error(exc, self.path / name, RunFolderError) from None
 
     def write_json(self, name: str, data) -> None:
-        write_json(self.path / name, data)
+        """Write a JSON file of the run folder before the run (RunFolderError if it cannot be written)."""
+        try:
+            write_json(self.path / name, data)
+        except OSError as exc:
+            raise write_error(exc, self.path / name, RunFolderError) from None
 
     def append_step(self, rec: StepRecord) -> None:
-        """Append one step to the log (flushed) and keep it for the arrays."""
-        self.records.append(rec)
-        line = {
-            "k": rec.k, "x": rec.x, "u": rec.u, "alpha": rec.alpha, "beta": rec.beta, "J": rec.J,
-            "J_agents": rec.J_agents, "S": rec.S, "rounds": rec.rounds, "max_change": rec.max_change,
-            "status": rec.status, "fallback": rec.fallback, "fallback_reason": rec.fallback_reason,
-            "solve_time": rec.solve_time, "qp_iterations": rec.qp_iterations, "latency": rec.latency,
-            "step_time": rec.step_time, "x_next": rec.x_next, "alpha_next": rec.alpha_next,
-            "beta_next": rec.beta_next, "note": rec.note,
-        }
-        if rec.r is not None:
-            line["r"], line["r_next"] = rec.r, rec.r_next
-        self._log.write(json.dumps(_jsonable(line)) + "\n")
-        self._log.flush()
+        """Append one step to the log (flushed) and to the rows of the arrays."""
+        text = json.dumps(step_line(rec)) + "\n"
+        log_end = self._log.tell()
+        try:
+            self._log.write(text)
+            self._log.flush()
+        except OSError as exc:
+            self._cut_back(log_end)
+            raise write_error(exc, self.path / STEP_LOG) from None
+        try:
+            self.columns.add(rec)
+        except OSError as exc:
+            self._cut_back(log_end)
+            raise write_error(exc, self.path / ROWS_FILE) from None
+
+    def _cut_back(self, log_end: int) -> None:
+        """Drop a partly written last line (truncating needs no free space)."""
+        try:
+            self._log.close()
+        except OSError:
+            pass  # its buffer could not be flushed: the truncation below removes what got through
+        try:
+            os.truncate(self.path / STEP_LOG, log_end)
+        except OSError:
+            pass
 
     def close(self) -> None:
-        if not self._log.closed:
-            self._log.close()
+        for closer in (self._log.close, self.columns.close):
+            try:
+                closer()
+            except OSError:
+                pass
 
-    def finish(self, extra: dict | None = None) -> dict:
-        """Write ``trajectory.npz`` and ``summary.json`` from the recorded steps; returns the summary."""
+    def finish(self, extra: dict | None = None, limits: RunLimits | None = None) -> dict:
+        """Write ``trajectory.npz`` and ``summary.json`` from the recorded steps; returns the summary.
+
+        ``limits`` (the planned steps and Jacobi caps) feed the verdict; without them the run is
+        judged as planned to the steps it has. RunFolderError if a file cannot be written.
+        """
         self.close()
-        arrays = trajectory_arrays(self.system, self.records)
-        np.savez(self.path / "trajectory.npz", **arrays)
-        summary = summarise(self.system, self.records, arrays)
-        summary.update(extra or {})
-        self.write_json("summary.json", summary)
+        arrays = self.columns.arrays()
+        try:
+            write_npz(self.path / TRAJECTORY, {**_public(arrays), **layout_arrays(self.system)})
+        except OSError as exc:
+            raise write_error(exc, self.path / TRAJECTORY) from None
+        extra = dict(extra or {})
+        summary = summarise(self.system, self.columns.tally, arrays, limits or RunLimits(steps=self.steps),
+                            extra.get("inputs_refused"))
+        summary.update(extra)
+        try:
+            write_json(self.path / SUMMARY, summary)
+        except OSError as exc:
+            raise write_error(exc, self.path / SUMMARY) from None
+        try:
+            os.unlink(self.path / ROWS_FILE)
+        except OSError:
+            pass
         return summary
+
+
+def step_line(rec: StepRecord) -> dict:
+    """A step record as its ``steps.jsonl`` line (docs/records.md), JSON-ready."""
+    line = {
+        "k": rec.k, "x": rec.x, "u": rec.u, "alpha": rec.alpha, "beta": rec.beta, "J": rec.J,
+        "J_agents": rec.J_agents, "S": rec.S, "rounds": rec.rounds, "max_change": rec.max_change,
+        "status": rec.status, "fallback": rec.fallback, "fallback_reason": rec.fallback_reason,
+        "solve_time": rec.solve_time, "qp_iterations": rec.qp_iterations, "latency": rec.latency,
+        "step_time": rec.step_time, "x_next": rec.x_next, "alpha_next": rec.alpha_next,
+        "beta_next": rec.beta_next, "note": rec.note,
+    }
+    if rec.r is not None:
+        line["r"], line["r_next"] = rec.r, rec.r_next
+    return jsonable(line)
+
+
+def write_error(exc: OSError, path: Path, cls: type[RunFolderError] = RecordWriteError) -> RunFolderError:
+    """One line naming the file and the system's reason, e.g. for a full disk."""
+    return cls(f"cannot write {path}: {exc.strerror or exc}")
+
+
+def _public(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The arrays that go into trajectory.npz (the fallback codes stay internal)."""
+    return {k: v for k, v in arrays.items() if k != "fallback_code"}
+
+
+def _columns_of(system: CoupledSystem, records: list[StepRecord]) -> StepColumns:
+    columns = StepColumns(system)
+    for rec in records:
+        columns.add(rec)
+    return columns
 
 
 def trajectory_arrays(system: CoupledSystem, records: list[StepRecord]) -> dict[str, np.ndarray]:
     """Arrays of a run: x (K+1, n), u (K, m), alpha (K+1, n), beta (K+1,), J (K,), S (K+1,), ...
 
-    The ellipsoid methods add r (K+1, M), the levels r_i(k).
+    Also J_agents, solve_time, latency (K, M), qp_iterations (K, M) int, fallback (K, M) bool,
+    rounds (K,) int, step_time, max_change (K,), and per subsystem plan_z_<name> (K, N+1, n_i),
+    plan_v_<name> (K, N, m_i). The ellipsoid methods add r (K+1, M), the levels r_i(k).
     """
-    K = len(records)
-    M = system.M
-    if K == 0:
-        x = system.x0[None, :]
-        empty = np.zeros((0, M))
-        return {"x": x, "u": np.zeros((0, system.m)), "alpha": np.zeros((1, system.n)), "beta": np.zeros(1),
-                "J": np.zeros(0), "S": np.array([_S(system, system.x0)]), "J_agents": empty, "solve_time": empty,
-                "qp_iterations": empty.astype(int), "fallback": empty.astype(bool), "latency": empty,
-                "rounds": np.zeros(0, int), "step_time": np.zeros(0), "max_change": np.zeros(0)}
-    x = np.vstack([r.x for r in records] + [records[-1].x_next])
-    arrays = {
-        "x": x,
-        "u": np.vstack([r.u for r in records]),
-        "alpha": np.vstack([r.alpha for r in records] + [records[-1].alpha_next]),
-        "beta": np.array([r.beta for r in records] + [records[-1].beta_next]),
-        "J": np.array([r.J for r in records]),
-        "S": np.array([r.S for r in records] + [_S(system, records[-1].x_next)]),
-        "J_agents": np.array([r.J_agents for r in records]),
-        "solve_time": np.array([r.solve_time for r in records], dtype=float),
-        "qp_iterations": np.array([r.qp_iterations for r in records], dtype=int),
-        "fallback": np.array([r.fallback for r in records], dtype=bool),
-        "latency": np.array([r.latency if r.latency else [np.nan] * M for r in records], dtype=float),
-        "rounds": np.array([r.rounds for r in records], dtype=int),
-        "step_time": np.array([r.step_time for r in records], dtype=float),
-        "max_change": np.array([r.max_change for r in records], dtype=float),
-    }
-    if records[0].r is not None:
-        arrays["r"] = np.vstack([r.r for r in records] + [records[-1].r_next])
-    for i, s in enumerate(system.subsystems):
-        arrays[f"plan_z_{s.name}"] = np.array([r.plans_z[i] for r in records])
-        arrays[f"plan_v_{s.name}"] = np.array([r.plans_v[i] for r in records])
-    return arrays
+    return _public(_columns_of(system, records).arrays())
 
 
-def _S(system: CoupledSystem, x: np.ndarray) -> float:
-    parts = system.split_state(x)
-    return float(sum(parts[i] @ parts[i] / len(system.neighbours[i]) for i in range(system.M)))
+def layout_arrays(system: CoupledSystem) -> dict[str, np.ndarray]:
+    """How to split the stacked arrays: ``names`` (M,) str, ``state_sizes`` and ``input_sizes`` (M,) int."""
+    return {"names": np.array([s.name for s in system.subsystems], dtype=str),
+            "state_sizes": np.array([s.n for s in system.subsystems], dtype=int),
+            "input_sizes": np.array([s.m for s in system.subsystems], dtype=int)}
 
 
 def stage_cost(system: CoupledSystem, x: np.ndarray, u: np.ndarray) -> float:
@@ -176,10 +249,18 @@ def stage_cost(system: CoupledSystem, x: np.ndarray, u: np.ndarray) -> float:
     return float(x @ system.Q @ x + u @ system.R @ u)
 
 
-def summarise(system: CoupledSystem, records: list[StepRecord], arrays: dict[str, np.ndarray]) -> dict:
-    """The content of summary.json."""
-    K = len(records)
-    statuses = [s for r in records for s in r.status]
+def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays: dict[str, np.ndarray],
+              limits: RunLimits | None = None, inputs_refused: dict[str, int] | None = None) -> dict:
+    """The content of summary.json, with the run's verdict (:mod:`dmpc.records.verdict`).
+
+    ``steps`` is the tally of a :class:`~dmpc.records.columns.StepColumns`, or the step records
+    themselves (then ``arrays`` may come from :func:`trajectory_arrays`).
+    """
+    if not isinstance(steps, StepTally):
+        columns = _columns_of(system, steps)
+        steps = columns.tally
+        arrays = {**arrays, "fallback_code": columns.arrays()["fallback_code"]}
+    K = steps.steps
     u = arrays["u"]
     bound_excess = 0.0
     for i, sub in enumerate(system.subsystems):
@@ -196,14 +277,20 @@ def summarise(system: CoupledSystem, records: list[StepRecord], arrays: dict[str
     solve = arrays["solve_time"]
     finite_solve = solve[np.isfinite(solve)]
     step_time = arrays["step_time"][np.isfinite(arrays["step_time"])]
+    notes = steps.notes
+    verdict = judge(system, arrays, notes, limits or RunLimits(steps=K), inputs_refused, steps.reasons)
     return {
+        "verdict": verdict.word,
+        "failures": [f.to_json() for f in verdict.failures],
+        "warnings": [f.to_json() for f in verdict.warnings],
         "steps": K,
-        "feasible": bool(K > 0 and all(s in ("solved", "solved_inaccurate") for s in statuses)),
+        "feasible": bool(K > 0 and steps.all_solved),
         "fallbacks": int(arrays["fallback"].sum()),
         "fallbacks_per_agent": dict(zip([s.name for s in system.subsystems], fallbacks_per_agent)),
         "fallback_steps": [[int(k), system.subsystems[i].name] for k, i in zip(*np.nonzero(arrays["fallback"]))],
         "max_abs_u": float(np.max(np.abs(u))) if K else 0.0,
         "input_bound_excess": bound_excess,
+        "state_bound_excess": state_bound_excess(system, arrays["x"]),
         "J": J.tolist(),
         "S": arrays["S"].tolist(),
         "beta": arrays["beta"].tolist(),
@@ -212,7 +299,7 @@ def summarise(system: CoupledSystem, records: list[StepRecord], arrays: dict[str
         "theorem3_margin": decrease,
         "J_non_increasing": bool(all(np.diff(J) <= 1e-9)) if K > 1 else True,
         "rounds_k0": int(arrays["rounds"][0]) if K else 0,
-        "notes": [f"k={r.k}: {r.note}" if not r.note.startswith("k=") else r.note for r in records if r.note],
+        "notes": notes,
         "solve_time_median_s": float(np.median(finite_solve)) if finite_solve.size else None,
         "step_time_median_s": float(np.median(step_time)) if step_time.size else None,
         "step_time_p99_s": float(np.percentile(step_time, 99)) if step_time.size else None,

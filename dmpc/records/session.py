@@ -3,18 +3,22 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from dmpc.console import stderr_console
 from dmpc.plant.barrier import StepRecord
-from dmpc.records.run_folder import RunFolder
+from dmpc.records.run_folder import RecordWriteError, RunFolder
+from dmpc.records.verdict import RunLimits
+from dmpc.runtime.plant_setup import DISTURBANCE_FILE
 from dmpc.runtime.setup import Prepared
 from dmpc.scenario import dump_resolved
 
 
 class RunRecorder:
-    """Writes scenario.yaml and design.json at once, each step as it completes, and the
-    arrays and summary at the end; an interrupted run still gets them for the completed steps.
+    """Writes scenario.yaml (run.json for a run started from a run bundle) and design.json at
+    once, each step as it completes, and the arrays and summary at the end; an interrupted run
+    still gets them for the completed steps.
 
     Parameters
     ----------
@@ -27,12 +31,20 @@ class RunRecorder:
     def __init__(self, out, prepared: Prepared, show_progress: bool = True) -> None:
         self.prepared = prepared
         self.folder = RunFolder(out, prepared.system)
-        self.folder.write_text("scenario.yaml", dump_resolved(prepared.scenario))
+        if prepared.scenario is not None:
+            self.folder.write_text("scenario.yaml", dump_resolved(prepared.scenario))
+        else:  # started from a run bundle: the bundle describes the run instead
+            from dmpc.runtime.bundle import bundle_json
+
+            self.folder.write_json("run.json", bundle_json(prepared))
         self.folder.write_json("design.json", prepared.design_json())
+        if prepared.plant.disturbance is not None:
+            np.save(self.folder.path / DISTURBANCE_FILE, prepared.plant.disturbance)
         self._started = time.monotonic()
         self._progress = None
         self._task = None
         self.summary: dict | None = None
+        self._write_failed = False
         if show_progress:
             self._progress = Progress(TextColumn("[bold]steps"), BarColumn(), MofNCompleteColumn(),
                                       TextColumn("J={task.fields[J]}"), TimeElapsedColumn(),
@@ -45,24 +57,54 @@ class RunRecorder:
         return self
 
     def on_step(self, record: StepRecord) -> None:
-        self.folder.append_step(record)
+        """Record a completed step; after a failed write (RecordWriteError, raised once) the
+        records are closed and later steps are not recorded."""
+        if self._write_failed:
+            return
+        try:
+            self.folder.append_step(record)
+        except RecordWriteError:
+            self._write_failed = True
+            raise
         if self._progress is not None:
             self._progress.update(self._task, advance=1, J=f"{record.J:.4g}")
 
     def complete(self, **extra) -> dict:
-        """Write the arrays and the summary; returns the summary."""
+        """Write the arrays and the summary; returns the summary (RecordWriteError if it cannot)."""
         if self._progress is not None:
             self._progress.stop()
         info = {"scenario": self.prepared.name, "design_digest": self.prepared.digest, "method": self.prepared.method,
-                "wall_time_s": time.monotonic() - self._started, "rejected": {}, "rejected_reasons": {},
-                "duplicates": 0, "agents": {}}
+                "wall_time_s": time.monotonic() - self._started,
+                "horizon": self.prepared.design.horizon,
+                "horizon_auto": (self.prepared.design.start or {}).get("horizon") == "auto", "rejected": {}, "rejected_reasons": {},
+                "duplicates": 0, "inputs_refused": {}, "agents": {}, "plant": self.prepared.plant.describe()}
         info.update({k: v for k, v in extra.items() if v is not None})
-        self.summary = self.folder.finish(info)
+        p = self.prepared.protocol
+        limits = RunLimits(steps=p.steps, initial_iterations=p.initial_iterations, iterations=p.iterations,
+                           initial_tolerance=p.initial_tolerance, tolerance=p.tolerance)
+        self.summary = self.folder.finish(info, limits)
         return self.summary
+
+    @property
+    def steps(self) -> int:
+        """Steps recorded so far."""
+        return self.folder.steps
+
+    def complete_if_possible(self, **extra) -> dict | None:
+        """:meth:`complete`, or None when the records cannot be written (the step log keeps the
+        completed steps)."""
+        try:
+            return self.complete(**extra)
+        except RecordWriteError:
+            return None
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if self.summary is None:
             reason = "interrupted" if exc_type is KeyboardInterrupt else (
+                f"failed: {exc}" if isinstance(exc, RecordWriteError) else
                 f"failed: {exc_type.__name__}" if exc_type else "incomplete")
-            self.complete(aborted=reason)
+            if exc_type is None and not self._write_failed:
+                self.complete(aborted=reason)
+            else:  # the exception on its way out says what went wrong; a second one must not hide it
+                self.complete_if_possible(aborted=reason)
         self.folder.close()

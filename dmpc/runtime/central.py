@@ -54,13 +54,13 @@ class CentralLoop:
         self._AK = system.A + system.B @ self._K
 
     def run(self, steps: int, on_step: Callable[[StepRecord], None], x0: np.ndarray | None = None,
-            stop: Callable[[StepRecord], bool] | None = None) -> CentralRun:
+            stop: Callable[[StepRecord], bool] | None = None, plant: Plant | None = None) -> CentralRun:
         """Run from x0 (the scenario's by default) for ``steps`` steps.
 
         ``stop(record)`` returning True ends the run after that step (used by the region of
-        attraction to stop once converged).
+        attraction to stop once converged). ``plant`` replaces the nominal plant started at x0.
         """
-        plant = Plant(self.system, x0)
+        plant = plant if plant is not None else Plant(self.system, x0)
         last: Plan | None = None
         for k in range(steps):
             record, last = self.step(k, plant, last)

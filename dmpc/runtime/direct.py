@@ -47,7 +47,6 @@ class DirectLoop:
         self.controllers = [AgentController(system, design, i, coupling=coupling, method=method)
                             for i in range(system.M)]
         self.names = [s.name for s in system.subsystems]
-        self._index = {name: i for i, name in enumerate(self.names)}
 
     def run(self, steps: int, on_step: Callable[[StepRecord], None], x0: np.ndarray | None = None,
             stop: Callable[[StepRecord], bool] | None = None) -> int:
@@ -64,8 +63,10 @@ class DirectLoop:
         while pending:
             action = pending.popleft()
             if isinstance(action, SendRelease):
-                msg = self._answer(action.release, archive)
-                pending.extend(coordinator.on_plan(msg))
+                skipped = set(action.release.skipped)
+                for i, name in enumerate(self.names):
+                    if name not in skipped:
+                        pending.extend(coordinator.on_plan(self._answer(i, action.release, archive)))
             elif isinstance(action, StepCompleted):
                 on_step(action.record)
                 done += 1
@@ -73,21 +74,21 @@ class DirectLoop:
                     break
         return done
 
-    def _answer(self, release, archive: dict[tuple[int, int, int], Plan]) -> PlanMessage:
-        """Agent ``release.target``'s plan for its release (what AgentNode does over the bus)."""
-        i = self._index[release.target]
+    def _answer(self, i: int, release, archive: dict[tuple[int, int, int], Plan]) -> PlanMessage:
+        """Agent i's plan for the release (what AgentNode does over the bus)."""
         plans: dict[int, Plan | None] = {}
-        for name, ref in release.assumed.items():
-            j = self._index[name]
+        for j in self.controllers[i].neighbours:
+            ref = release.reference(j)
             if ref is None:
                 plans[j] = None
-            elif name in release.provided:
-                plans[j] = Plan(ref[0], ref[1], *release.provided[name])
+            elif self.names[j] in release.provided:
+                plans[j] = Plan(ref[0], ref[1], *release.provided[self.names[j]])
             else:
                 plans[j] = archive[(j, *ref)]
-        states = {self._index[name]: x for name, x in release.states.items()}
-        sol = self.controllers[i].solve(release.k, states, release.alpha, release.beta, plans)
+        system = self.system
+        states = {j: release.x[system.xs(j)] for j in system.neighbours[i]}
+        sol = self.controllers[i].solve(release.k, states, release.centres[system.xs(i)], float(release.sizes[i]), plans)
         archive[(i, release.k, release.iteration)] = Plan(release.k, release.iteration, sol.z, sol.v)
-        return PlanMessage(run=RUN_ID, k=release.k, iteration=release.iteration, sender=release.target,
+        return PlanMessage(run=RUN_ID, k=release.k, iteration=release.iteration, sender=self.names[i],
                            status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
                            qp_iterations=int(sol.iterations))

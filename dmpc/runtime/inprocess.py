@@ -15,8 +15,8 @@ from dmpc.bus.interface import Bus
 from dmpc.bus.memory import MemoryBus
 from dmpc.methods import method_spec, terminal_policy
 from dmpc.plant.barrier import Coordinator, StepRecord
-from dmpc.plant.dynamics import Plant
 from dmpc.plant.node import PlantNode
+from dmpc.runtime.plant_setup import make_plant
 from dmpc.runtime.setup import Prepared
 
 
@@ -46,7 +46,7 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
     else:
         view = lambda b, name: FaultyBus(b, name, prepared.faults)  # noqa: E731
     system, design = prepared.system, prepared.design
-    coordinator = Coordinator(system, design, Plant(system), prepared.protocol, run_id,
+    coordinator = Coordinator(system, design, make_plant(prepared), prepared.protocol, run_id,
                               policy=terminal_policy(prepared.method, system, design))
     plant = PlantNode(view(bus, "plant"), coordinator, prepared.digest, on_step, mode=prepared.mode,
                       dt=prepared.dt, deadline=prepared.deadline)
@@ -54,7 +54,7 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
     for i, name in enumerate(prepared.names):
         controller = AgentController(system, design, i, coupling=prepared.coupling, method=prepared.method)
         agents.append(AgentNode(view(bus, name), controller, prepared.names, run_id, prepared.digest,
-                                plan_wait=prepared.plan_wait))
+                                plan_wait=prepared.plan_wait, scenario=prepared.name))
     plant.announce()
     for agent in agents:
         agent.announce()
@@ -88,11 +88,13 @@ def record_run(prepared: Prepared, recorder) -> tuple[dict, str]:
     if not method_spec(prepared.method).distributed:
         from dmpc.runtime.central import CentralLoop
 
-        result = CentralLoop(prepared.system, prepared.design).run(prepared.protocol.steps, recorder.on_step)
+        result = CentralLoop(prepared.system, prepared.design).run(prepared.protocol.steps, recorder.on_step,
+                                                                   plant=make_plant(prepared))
         summary = recorder.complete(runtime="in-process (centralized, no agents)", failure=result.failure or None)
         return summary, result.failure
     run = simulate(prepared, recorder.on_step)
     summary = recorder.complete(runtime="in-process", failure=run.plant.failure or None, rejected=run.plant.rejected,
                                 rejected_reasons=run.plant.rejects.reasons, duplicates=run.plant.coordinator.duplicates,
+                                inputs_refused=run.plant.coordinator.inputs_refused,
                                 agents={a.name: a.report() for a in run.agents})
     return summary, run.plant.failure

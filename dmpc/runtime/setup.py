@@ -8,9 +8,13 @@ import json
 from dataclasses import dataclass
 
 from dmpc.bus.faults import FaultPlan, LinkFault
-from dmpc.design import Design, design_from_json, design_system
+from dmpc.design import Design, DesignError, design_from_json, design_gains
 from dmpc.plant.barrier import ProtocolOptions
+from dmpc.runtime.horizon import StartCheck, auto_beta0
+from dmpc.runtime.plant_setup import PlantSetup, disturbance_bounds, plant_setup
 from dmpc.system import CoupledSystem
+
+AUTO = "auto"
 
 if TYPE_CHECKING:  # the scenario package needs pydantic, which agent processes can do without
     from dmpc.scenario import Scenario
@@ -39,6 +43,10 @@ class Prepared:
         ``feedforward`` or ``nominal``.
     method : str
         The control method (:mod:`dmpc.methods`), ``tv-box`` by default.
+    plant : PlantSetup
+        What the plant simulates (model, disturbance, the user's function); the nominal model by default.
+    model : dict or None
+        For ``time: continuous``, the discretisation (``dmpc.discretisation.DiscreteModel.to_json``).
     """
 
     scenario: "Scenario | None"
@@ -53,15 +61,21 @@ class Prepared:
     name: str = "scenario"
     coupling: str = "feedforward"
     method: str = "tv-box"
+    plant: PlantSetup = PlantSetup()
+    model: dict | None = None
 
     @property
     def names(self) -> list[str]:
         return [s.name for s in self.system.subsystems]
 
     def design_json(self) -> dict:
-        """The content of ``design.json`` (the design plus its digest)."""
+        """The content of ``design.json``: the design, its digest, and how its horizon and beta0 were chosen."""
         data = self.design.to_json()
         data["digest"] = self.digest
+        if self.design.start is not None:
+            data["start"] = self.design.start
+        if self.model is not None:
+            data["model"] = self.model
         return data
 
     @property
@@ -70,16 +84,49 @@ class Prepared:
         return None if self.deadline is None else 0.5 * self.deadline
 
 
-def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | None = None) -> Design:
-    """Run the offline design the scenario asks for, or rebuild it from ``design.json`` content."""
+def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | None = None,
+               protocol: ProtocolOptions | None = None, disturbances: dict | None = None) -> Design:
+    """Run the offline design the scenario asks for, or rebuild it from ``design.json`` content.
+
+    Resolves ``terminal.beta0: auto`` and ``horizon: auto`` and checks the start
+    (:mod:`dmpc.runtime.horizon`); a design read from ``design_data`` keeps the horizon and beta0
+    it was made with. ``disturbances`` (per subsystem index, the bound (n_i,) of an additive plant
+    disturbance) widen the tube of ``options.tube: robust``.
+    """
     from dmpc.scenario import alpha0_vector, given_gains, revision_bounds
 
-    kwargs = dict(horizon=scenario.horizon, alpha0=alpha0_vector(scenario, system), beta0=scenario.terminal.beta0,
-                  tube=scenario.options.tube, revision_bounds=revision_bounds(scenario))
+    alpha0 = alpha0_vector(scenario, system)
+    bounds = revision_bounds(scenario)
+    tube = scenario.options.tube
     if design_data is not None:
-        return design_from_json(system, design_data, **kwargs)
+        horizon = scenario.horizon if scenario.horizon != AUTO else int(design_data.get("horizon", 0) or 0)
+        beta0 = scenario.terminal.beta0 if scenario.terminal.beta0 != AUTO else float(design_data.get("beta0", 0))
+        if horizon < 1:
+            raise DesignError("design file: no horizon in it, and the scenario's horizon is auto")
+        return design_from_json(system, design_data, horizon=horizon, alpha0=alpha0, beta0=beta0, tube=tube,
+                                revision_bounds=bounds, disturbance_bounds=disturbances)
     given = given_gains(scenario) if scenario.design.gains == "given" else None
-    return design_system(system, gains=scenario.design.gains, given=given, **kwargs)
+    gains, terminal = design_gains(system, scenario.design.gains, given)
+    beta0 = auto_beta0(terminal, alpha0) if scenario.terminal.beta0 == AUTO else scenario.terminal.beta0
+    check = StartCheck(system, gains, terminal, alpha0=alpha0, beta0=beta0, method=scenario.options.method,
+                       coupling=scenario.options.coupling, tube=tube, revision_bounds=bounds,
+                       disturbance_bounds=disturbances, protocol=protocol or protocol_options(scenario))
+    if scenario.horizon == AUTO:
+        design = check.auto()
+    elif scenario.design.check_start:
+        design = check.checked(scenario.horizon)
+    else:
+        design = check.design(scenario.horizon)
+    if scenario.terminal.beta0 == AUTO:
+        design = design.with_start({**(design.start or {}), "beta0": "auto"})
+    return design
+
+
+def protocol_options(scenario: Scenario, steps: int | None = None) -> ProtocolOptions:
+    """The coordinator's settings from the scenario's options."""
+    opts = scenario.options
+    return ProtocolOptions(steps=steps or scenario.steps, iterations=opts.iterations, tolerance=opts.tolerance,
+                           initial_iterations=opts.initial_iterations, initial_tolerance=opts.initial_tolerance)
 
 
 def design_digest(design: Design, method: str = "tv-box") -> str:
@@ -97,10 +144,10 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
     from dmpc.scenario import build_system
 
     system = build_system(scenario)
-    design = design_for(scenario, system, design_data)
+    protocol = protocol_options(scenario, steps)
+    plant = plant_setup(scenario, system, protocol.steps)
+    design = design_for(scenario, system, design_data, protocol, disturbance_bounds(plant, system))
     opts = scenario.options
-    protocol = ProtocolOptions(steps=steps or scenario.steps, iterations=opts.iterations, tolerance=opts.tolerance,
-                               initial_iterations=opts.initial_iterations, initial_tolerance=opts.initial_tolerance)
     deadline = opts.deadline
     if deadline is None and opts.mode == "realtime":
         deadline = opts.dt
@@ -113,7 +160,17 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
                             field="faults.loss")
     return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design, opts.method),
                     protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario),
-                    name=scenario.name, coupling=opts.coupling, method=opts.method)
+                    name=scenario.name, coupling=opts.coupling, method=opts.method, plant=plant,
+                    model=_model_report(scenario))
+
+
+def _model_report(scenario: Scenario) -> dict | None:
+    """The discretisation of a continuous-time scenario, for design.json (None in discrete time)."""
+    if scenario.time != "continuous":
+        return None
+    from dmpc.scenario import discrete_model
+
+    return discrete_model(scenario).to_json()
 
 
 def fault_plan(scenario: Scenario) -> FaultPlan:

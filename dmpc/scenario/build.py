@@ -10,7 +10,7 @@ from dmpc.scenario.load import ScenarioError
 from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario
 from dmpc.system import CoupledSystem, Coupling, LinearSet, Subsystem
 
-__all__ = ["alpha0_vector", "build_system", "given_gains", "revision_bounds"]
+__all__ = ["alpha0_vector", "build_system", "discrete_model", "given_gains", "revision_bounds"]
 
 
 def _array(rows: list) -> np.ndarray:
@@ -32,7 +32,7 @@ def _linear_set(spec: BoxSpec | PolytopeSpec | None) -> LinearSet | None:
 
 
 def build_system(scn: Scenario) -> CoupledSystem:
-    """The coupled system of a scenario.
+    """The coupled system of a scenario: the controllers' discrete-time model.
 
     Parameters
     ----------
@@ -42,8 +42,35 @@ def build_system(scn: Scenario) -> CoupledSystem:
     -------
     CoupledSystem
         Subsystems in file order with ``name`` = the user's id; couplings with 0-based indices
-        (B = zeros where the file omits it); ``scn.graph`` as extra edges.
+        (B = zeros where the file omits it); ``scn.graph`` as extra edges. With
+        ``time: continuous``, the matrices discretised with ``dt`` (:func:`discrete_model`).
     """
+    if scn.time == "continuous":
+        return discrete_model(scn).system
+    return _system_as_written(scn)
+
+
+def discrete_model(scn: Scenario):
+    """The discretisation of a ``time: continuous`` scenario (:class:`dmpc.discretisation.DiscreteModel`).
+
+    Raises
+    ------
+    ScenarioError
+        The scenario is in discrete time, or ``exact-zoh`` spreads entries outside the coupling
+        graph above ``discretisation.tolerance`` without ``truncate``.
+    """
+    from dmpc.discretisation import FillInRefused, discretise  # lazy: scipy.linalg only when needed
+
+    if scn.time != "continuous":
+        raise ScenarioError("time: the scenario is in discrete time; nothing to discretise", field="time")
+    d = scn.discretisation
+    try:
+        return discretise(_system_as_written(scn), scn.dt, d.method, d.truncate, d.tolerance)
+    except FillInRefused as exc:
+        raise ScenarioError(f"discretisation: {exc}", field="discretisation.truncate") from None
+
+
+def _system_as_written(scn: Scenario) -> CoupledSystem:
     specs = scn.resolved_subsystems()
     index = {s.name: i for i, s in enumerate(specs)}
     subsystems = tuple(

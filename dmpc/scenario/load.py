@@ -155,7 +155,18 @@ def load_scenario(path: str | Path, overrides: Mapping[str, object] | None = Non
     data = _parse_yaml(text, source)
     if data is None:
         raise ScenarioError(f"{source}: the file is empty (expected a YAML mapping of scenario fields)")
-    return validate_scenario(data, overrides, source=source)
+    return _files_from(validate_scenario(data, overrides, source=source), Path(path).parent)
+
+
+def _files_from(scn: Scenario, folder: Path) -> Scenario:
+    """``scn`` with a relative ``plant.disturbance.file`` made absolute against ``folder`` (the
+    scenario file's), so that the resolved scenario in a run folder still finds it."""
+    spec = scn.plant.disturbance
+    if spec is None or spec.file is None or Path(spec.file).is_absolute():
+        return scn
+    absolute = str((folder / spec.file).resolve())
+    plant = scn.plant.model_copy(update={"disturbance": spec.model_copy(update={"file": absolute})})
+    return scn.model_copy(update={"plant": plant})
 
 
 def validate_scenario(data: Any, overrides: Mapping[str, object] | None = None,

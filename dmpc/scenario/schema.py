@@ -21,8 +21,9 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Fiel
 from dmpc.methods import METHOD_NAMES
 
 __all__ = [
-    "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "FamilyCouplingSpec", "FaultsSpec",
-    "LinkFaultSpec", "OptionsSpec", "PolytopeSpec", "RevisionBoundSpec", "Scenario", "SpecError",
+    "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "DiscretisationSpec", "DisturbanceSpec",
+    "FamilyCouplingSpec", "FaultsSpec", "LabelSpec", "LinkFaultSpec", "OptionsSpec", "PlantSpec", "PolytopeSpec",
+    "RevisionBoundSpec", "Scenario", "SpecError",
     "SubsystemSpec", "SubsystemTemplate", "TerminalSpec",
 ]
 
@@ -130,6 +131,34 @@ NonNegFloat = Annotated[float, Field(strict=True, ge=0, allow_inf_nan=False)]
 Probability = Annotated[float, Field(strict=True, ge=0, lt=1, allow_inf_nan=False)]
 
 
+AUTO = "auto"
+
+
+def _auto_or_positive(kind: type):
+    """A validator of ``'auto'`` or a positive number of ``kind`` (int: >= 1; float: > 0)."""
+    def check(value: object) -> object:
+        if value == AUTO:
+            return value
+        if kind is int:
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise SpecError("", f"expected 'auto' or an integer greater than or equal to 1, got {_show(value)}")
+            return value
+        try:
+            out = _number(value, "")
+        except SpecError:
+            out = float("nan")
+        if not out > 0:
+            raise SpecError("", f"expected 'auto' or a number greater than 0, got {_show(value)}")
+        return out
+    return check
+
+
+AutoPosInt = Annotated[Union[Literal["auto"], int], BeforeValidator(_auto_or_positive(int)),
+                       WithJsonSchema({"anyOf": [{"const": "auto"}, {"type": "integer", "minimum": 1}]})]
+AutoPosFloat = Annotated[Union[Literal["auto"], float], BeforeValidator(_auto_or_positive(float)),
+                         WithJsonSchema({"anyOf": [{"const": "auto"}, {"type": "number", "exclusiveMinimum": 0}]})]
+
+
 def _shape(rows: list[list[float]]) -> tuple[int, int]:
     return len(rows), len(rows[0])
 
@@ -160,6 +189,23 @@ def check_definite(mat: list[list[float]], path: str, strict: bool) -> None:
         raise SpecError(path, f"must be positive definite (smallest eigenvalue {low:.4g})")
     if not strict and low < -SYM_RTOL * scale:
         raise SpecError(path, f"must be positive semidefinite (smallest eigenvalue {low:.4g})")
+
+
+def check_inside(x: list[float], spec: "BoxSpec | PolytopeSpec", path: str, set_path: str, owner: str = "") -> None:
+    """Raise SpecError unless the point ``x`` lies in the set ``spec`` (written at ``set_path``);
+    ``owner`` (e.g. "subsystem 2: ") starts the message."""
+    if isinstance(spec, BoxSpec):
+        for c, (value, lo, hi) in enumerate(zip(x, spec.lower, spec.upper)):
+            if not lo <= value <= hi:
+                side, bound = ("upper", hi) if value > hi else ("lower", lo)
+                raise SpecError(f"{path}[{c}]", f"{owner}the start {value:g} is outside the state set X_i "
+                                                f"({set_path}.{side}[{c}] = {bound:g})")
+        return
+    for r, (row, h) in enumerate(zip(spec.H, spec.h)):
+        value = float(np.dot(row, x))
+        if value > h:
+            raise SpecError(path, f"{owner}the start is outside the state set X_i: row {r} of {set_path}.H gives "
+                                  f"{value:g} > {set_path}.h[{r}] = {h:g}")
 
 
 class _Model(BaseModel):
@@ -250,6 +296,18 @@ class RevisionBoundSpec(_Model):
         return self
 
 
+class LabelSpec(_Model):
+    """The name and unit of one state or input."""
+
+    name: str = Field(description="What the quantity is, e.g. 'position' or 'p'.")
+    unit: str = Field("", description="Its unit, e.g. 'm' or 'm/s'; empty for none.")
+
+    @property
+    def label(self) -> str:
+        """``name [unit]``, or the name alone without a unit."""
+        return f"{self.name} [{self.unit}]" if self.unit else self.name
+
+
 class SubsystemTemplate(_Model):
     """The dynamics, cost and constraints of one subsystem (without its name and x0)."""
 
@@ -271,6 +329,12 @@ class SubsystemTemplate(_Model):
     revision_bound: Optional[RevisionBoundSpec] = Field(
         None, description="Bounds on this subsystem's plan revisions between steps. Required for every "
                           "coupling source when options.tube is 'robust' (they bound the neighbours' W_i).")
+    states: Optional[list[LabelSpec]] = Field(
+        None, description="Names and units of the states, one {name, unit} per state (n_i entries), used in "
+                          "tables, figures and results; omitted: x1, x2, ...")
+    inputs: Optional[list[LabelSpec]] = Field(
+        None, description="Names and units of the inputs, one {name, unit} per input (m_i entries); omitted: "
+                          "u1, u2, ...")
 
     @property
     def n(self) -> int:
@@ -304,6 +368,10 @@ class SubsystemTemplate(_Model):
         if self.revision_bound is not None:
             check_length(self.revision_bound.state, n, "revision_bound.state", f"n = {n} states")
             check_length(self.revision_bound.input, m, "revision_bound.input", f"m = {m} inputs")
+        if self.states is not None:
+            check_length(self.states, n, "states", f"n = {n} states, from A")
+        if self.inputs is not None:
+            check_length(self.inputs, m, "inputs", f"m = {m} inputs, from B")
         return self
 
 
@@ -329,6 +397,8 @@ class SubsystemSpec(SubsystemTemplate, _Named):
     @model_validator(mode="after")
     def _x0_length(self) -> "SubsystemSpec":
         check_length(self.x0, self.n, "x0", f"n = {self.n} states, from A")
+        if self.state is not None:
+            check_inside(self.x0, self.state, "x0", "state", f"subsystem {self.name}: ")
         return self
 
 
@@ -365,6 +435,8 @@ class ChainFamily(_Model):
         n, m = self.subsystem.n, self.subsystem.m
         for i, x0 in enumerate(self.x0_cycle):
             check_length(x0, n, f"x0_cycle[{i}]", f"n = {n} states of the template")
+            if self.subsystem.state is not None:
+                check_inside(x0, self.subsystem.state, f"x0_cycle[{i}]", "subsystem.state")
         check_shape(self.coupling.A, (n, n), "coupling.A", "n x n of the template")
         if self.coupling.B is not None:
             check_shape(self.coupling.B, (n, m), "coupling.B", "n x m of the template")
@@ -387,11 +459,15 @@ class ChainFamily(_Model):
 
 
 class DesignSpec(_Model):
-    """How the terminal gains K_i and weights P_i are obtained."""
+    """How the terminal gains K_i and weights P_i are obtained, and what the design checks."""
 
     gains: Literal["lmi", "lqr", "given"] = Field(
         "lmi", description="'lmi': block-diagonal LMI maximising log det P^-1; 'lqr': per-subsystem DARE, "
                            "verified on the coupled system; 'given': K and P from each subsystem, verified.")
+    check_start: bool = Field(
+        True, description="Refuse a start x(0) that is infeasible for the centralised problem at the given horizon "
+                          "with the method's terminal set at k = 0 (one LP; the error names the smallest feasible "
+                          "horizon). false runs it anyway: the run's verdict then reports what happened.")
 
 
 class TerminalSpec(_Model):
@@ -400,7 +476,9 @@ class TerminalSpec(_Model):
     alpha0: Optional[dict[Name, Vector]] = Field(
         None, description="Initial box centres alpha_i(0) by subsystem name (n_i entries each); "
                           "subsystems not listed start at zeros.")
-    beta0: PosFloat = Field(0.5, description="Initial box radius beta(0) > 0; must not exceed sigma(alpha(0)).")
+    beta0: AutoPosFloat = Field(
+        "auto", description="Initial box radius beta(0) > 0; must not exceed sigma(alpha(0)). 'auto': 0.9 sigma(alpha(0)), "
+                            "the largest box around alpha(0) inside X^f less a margin from its boundary.")
 
 
 class OptionsSpec(_Model):
@@ -451,6 +529,67 @@ class FaultsSpec(_Model):
     links: list[LinkFaultSpec] = Field(default_factory=list, description="Per-link overrides of the above.")
 
 
+class DiscretisationSpec(_Model):
+    """How a continuous-time model (``time: continuous``) becomes the controllers' discrete model."""
+
+    method: Literal["local-zoh", "exact-zoh"] = Field(
+        "local-zoh", description="'local-zoh': each subsystem's exact zero-order hold with its neighbours' states and "
+                                 "inputs held over the period (keeps the coupling graph); 'exact-zoh': the exact "
+                                 "zero-order hold of the whole coupled system (entries outside the graph are refused "
+                                 "above 'tolerance' unless 'truncate').")
+    truncate: bool = Field(
+        False, description="exact-zoh only: drop the entries that fall outside the coupling graph instead of refusing "
+                           "them when they exceed the tolerance.")
+    tolerance: NonNegFloat = Field(
+        1e-9, description="exact-zoh only: the largest entry outside the coupling graph accepted, relative to the "
+                          "largest entry of the discrete [A B]; larger ones are refused unless 'truncate'.")
+
+
+class DisturbanceSpec(_Model):
+    """An additive disturbance w(k) on the plant: x(k+1) = A x(k) + B u(k) + w(k)."""
+
+    kind: Literal["uniform", "gaussian", "file"] = Field(
+        description="'uniform': w_i uniform in the box |w_i| <= bound_i; 'gaussian': normal with standard "
+                    "deviations std_i; 'file': read from 'file'.")
+    bound: Optional[dict[Name, Vector]] = Field(
+        None, description="uniform: half-widths per subsystem name (n_i entries >= 0); subsystems not listed get none.")
+    std: Optional[dict[Name, Vector]] = Field(
+        None, description="gaussian: standard deviations per subsystem name (n_i entries >= 0); subsystems not "
+                          "listed get none.")
+    file: Optional[str] = Field(
+        None, description="file: a .npy or .csv file with one row per step and n columns (the global state order); "
+                          "a relative path is read from the scenario file's folder.")
+    seed: Optional[Annotated[int, Field(strict=True, ge=0)]] = Field(
+        None, description="Seed of the random draws (>= 0); null uses the scenario's seed.")
+
+    @model_validator(mode="after")
+    def _fields_of_kind(self) -> "DisturbanceSpec":
+        needed = {"uniform": "bound", "gaussian": "std", "file": "file"}
+        for kind, field in needed.items():
+            given = getattr(self, field) is not None
+            if kind == self.kind and not given:
+                raise SpecError(field, f"required when kind is '{kind}'")
+            if kind != self.kind and given:
+                raise SpecError(field, f"only read when kind is '{kind}' (kind is '{self.kind}')")
+        for field in ("bound", "std"):
+            for name, vec in (getattr(self, field) or {}).items():
+                for c, value in enumerate(vec):
+                    if value < 0:
+                        raise SpecError(f"{field}.{name}[{c}]", f"must be >= 0, got {value:g}")
+        return self
+
+
+class PlantSpec(_Model):
+    """What the plant simulates, when it is not the controllers' own model."""
+
+    model: Literal["nominal", "exact"] = Field(
+        "nominal", description="'nominal': the controllers' discrete model; 'exact': the exact zero-order hold of "
+                               "the whole continuous-time system (time: continuous only), so that the controllers' "
+                               "model error shows.")
+    disturbance: Optional[DisturbanceSpec] = Field(
+        None, description="An additive disturbance w(k) on every state update; null for none.")
+
+
 class Scenario(_Model):
     """A complete experiment: the coupled system, the design choices and the run options."""
 
@@ -465,7 +604,9 @@ class Scenario(_Model):
                                           "with a family they are added to the chain's.")
     graph: list[tuple[Name, Name]] = Field(
         default_factory=list, description="Extra undirected communication edges [a, b] without dynamic coupling.")
-    horizon: PosInt = Field(10, description="Prediction horizon N, >= 1.")
+    horizon: AutoPosInt = Field(
+        "auto", description="Prediction horizon N >= 1, or 'auto': the smallest N for which the distributed k = 0 "
+                            "step finds a plan for every agent, plus max(2, ceil(0.2 N)) steps (searched up to 200).")
     steps: PosInt = Field(30, description="Number of closed-loop steps to simulate, >= 1.")
     seed: Annotated[int, Field(strict=True, ge=0)] = Field(
         0, description="Seed (>= 0) of every random choice (fault injection).")
@@ -473,6 +614,15 @@ class Scenario(_Model):
     terminal: TerminalSpec = Field(default_factory=TerminalSpec, description="Initial terminal box.")
     options: OptionsSpec = Field(default_factory=OptionsSpec, description="Algorithm and runtime options.")
     faults: FaultsSpec = Field(default_factory=FaultsSpec, description="Injected communication faults.")
+    dt: Optional[PosFloat] = Field(
+        None, description="Sampling period of the model in seconds: results and figures use seconds, and a "
+                          "continuous-time model is discretised with it. Not the realtime period (options.dt).")
+    time: Literal["discrete", "continuous"] = Field(
+        "discrete", description="'discrete': A, B, A_ij, B_ij are the discrete-time model; 'continuous': they are "
+                                "continuous-time, discretised with dt by 'discretisation'.")
+    discretisation: DiscretisationSpec = Field(
+        default_factory=DiscretisationSpec, description="How a continuous-time model is discretised.")
+    plant: PlantSpec = Field(default_factory=PlantSpec, description="The simulated plant: its model and disturbance.")
 
     def resolved_subsystems(self) -> list[SubsystemSpec]:
         """The subsystems in order, with a family expanded."""
@@ -511,6 +661,8 @@ class Scenario(_Model):
         _check_alpha0(self.terminal.alpha0, subs, index)
         _check_revision_bounds(self, subs, index)
         _check_links(self.faults.links, index)
+        _check_time(self)
+        _check_disturbance(self.plant.disturbance, subs, index)
         return self
 
 
@@ -587,3 +739,21 @@ def _check_links(links: list[LinkFaultSpec], index: dict[str, int]) -> None:
                                 f"unknown endpoint '{name}' (a subsystem name or '{PLANT}'; {_known(index)})")
         if link.source == link.target:
             raise SpecError(f"faults.links[{k}].target", f"must differ from source ('{link.source}')")
+
+
+def _check_time(scn: Scenario) -> None:
+    if scn.time == "continuous" and scn.dt is None:
+        raise SpecError("dt", "required when time is 'continuous' (the sampling period used to discretise)")
+    if scn.plant.model == "exact" and scn.time != "continuous":
+        raise SpecError("plant.model", "'exact' needs time: continuous (a discrete-time model is already exact)")
+
+
+def _check_disturbance(spec: DisturbanceSpec | None, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
+    if spec is None:
+        return
+    for field in ("bound", "std"):
+        for name, vec in (getattr(spec, field) or {}).items():
+            path = f"plant.disturbance.{field}.{name}"
+            _check_name(name, index, path)
+            n = subs[index[name]].n
+            check_length(vec, n, path, f"n = {n} states of subsystem '{name}'")

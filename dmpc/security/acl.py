@@ -5,11 +5,12 @@ The rules follow the protocol of ``bus.keys`` (``R`` is the run id, ``*`` for an
 =============  =====================================  ==========================================
 role           may publish (put, liveliness token)    may subscribe to
 =============  =====================================  ==========================================
-agent-I        plan/I, ready/I; token alive/agent-I   release/I, plan/J for J in N_I, control,
+agent-I        plan/I, ready/I; token alive/agent-I   release, plan/J for J in N_I, control,
                                                       alive/*
-plant          release/*, control; token alive/plant  plan/*, ready/*, alive/*
+plant          release, control; token alive/plant    plan/*, ready/*, alive/*
                (relays as a router: plan/*, alive/*)
 router         relays: everything under dmpc/R/**     everything under dmpc/R/**
+observer       nothing                                telemetry/*, alive/* (``dmpc watch``)
 =============  =====================================  ==========================================
 
 Subjects are bound to certificate common names (the roles of ``dmpc.security.certs``), the
@@ -78,12 +79,21 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     # In the star topology the plant's session is the agents' router: it forwards their plans
     # and liveliness tokens, which every agent already checked at that first hop. So the plant
     # may bring in plans and tokens of any role; it is the run's root of trust in any case.
-    role("plant", [keys.release(R, "*"), keys.control(R), keys.plan(R, "*")],
+    role("plant", [keys.release(R), keys.control(R), keys.plan(R, "*"), keys.telemetry_prefix(R)],
          [keys.plan(R, "*"), keys.ready(R, "*")], [alive_all], [keys.plan(R, "*"), keys.ready(R, "*")])
     for name in names:
         own = keys.agent_role(name)
-        subs = [keys.release(R, name), keys.control(R)] + [keys.plan(R, j) for j in neighbours[name]]
+        subs = [keys.release(R), keys.control(R)] + [keys.plan(R, j) for j in neighbours[name]]
         role(own, [keys.plan(R, name), keys.ready(R, name)], subs, [keys.alive(R, own)], subs)
+    # an observer only listens: it may declare subscribers to the telemetry and watch tokens
+    telemetry = keys.telemetry_prefix(R)
+    rules.extend([_rule("observer subscribe", "ingress", ["declare_subscriber"], [telemetry]),
+                  _rule("observer watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
+                        [alive_all]),
+                  _rule("observer receive", "egress", ["put"], [telemetry])])
+    subjects.append({"id": "observer", "cert_common_names": ["observer"]})
+    policies.append({"id": "observer", "rules": ["observer subscribe", "observer watch", "observer receive",
+                                                 "declarations"], "subjects": ["observer"]})
     rules.extend([_rule("relay in", "ingress", _ALL, [root]), _rule("relay out", "egress", _ALL, [root])])
     subjects.append({"id": "router", "cert_common_names": ["router"]})
     policies.append({"id": "router", "rules": ["relay in", "relay out"], "subjects": ["router"]})

@@ -1,7 +1,7 @@
 """Certificates for TLS links with mutual authentication: one CA, one certificate per role.
 
 Roles are ``router``, ``plant`` and ``agent-<name>`` (the liveliness role names of
-``bus.keys``). Each certificate's common name is its role: Zenoh's access control binds its
+``bus.keys``), and ``observer`` for ``dmpc watch`` (it may only listen). Each certificate's common name is its role: Zenoh's access control binds its
 subjects to these names (``cert_common_names``). Every certificate carries the subject
 alternative names of the hosts it may be reached at, so that a peer connecting to
 ``tls/<host>:<port>`` can verify it (a process that listens is a TLS server).

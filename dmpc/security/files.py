@@ -15,8 +15,8 @@ CA_KEY = "ca.key"
 
 
 def role_names(agent_names: Iterable[str]) -> list[str]:
-    """``router``, ``plant`` and ``agent-<name>`` for every agent, in that order."""
-    return ["router", "plant"] + [f"agent-{name}" for name in agent_names]
+    """``router``, ``plant``, ``agent-<name>`` for every agent and ``observer``, in that order."""
+    return ["router", "plant"] + [f"agent-{name}" for name in agent_names] + ["observer"]
 
 
 def cert_path(directory: str | Path, role: str) -> Path:

@@ -1,4 +1,4 @@
-"""The paper's example written out by hand (ALGORITHM.md section 5), independent of dmpc.
+"""The paper's example written out by hand (docs/algorithm.md, "The paper's example, corrected"), independent of dmpc.
 
 Nothing here imports dmpc: the tests compare the package's results with these matrices
 and with the small independent computations below (LPs with scipy, explicit loops).

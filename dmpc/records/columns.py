@@ -1,0 +1,226 @@
+"""The numbers of a run's steps, kept in fixed-width rows on disk (or in memory), not as objects.
+
+A run folder must not grow in memory with the run's length: a controller may run for days.
+Each completed step becomes one row of float64 values with a fixed layout (the arrays of
+``trajectory.npz`` for that step, plus the codes of the fallback reasons), appended to
+``.steps.f64`` in the run folder. At the end the rows are read back through a memory map and
+written to ``trajectory.npz`` array by array, a block of rows at a time, so memory stays bounded
+by the work of one step, whatever the number of steps.
+
+The same class keeps the rows in a list when it has no file (tests, in-memory runs), so both
+paths build their arrays with the same code.
+"""
+from __future__ import annotations
+
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dmpc.plant.barrier import StepRecord
+from dmpc.system import CoupledSystem
+
+ROWS_FILE = ".steps.f64"
+BLOCK_ROWS = 4096
+"""Rows copied at a time when ``trajectory.npz`` is written."""
+FINAL = ("x", "alpha", "beta", "S", "r")
+"""Columns that get one more row at the end: the state (terminal set) after the last step."""
+_INT = {"qp_iterations", "rounds"}
+_BOOL = {"fallback"}
+
+
+@dataclass(frozen=True)
+class Column:
+    """Where one array lives in a row: ``row[start:start + size]`` reshaped to ``shape``."""
+
+    start: int
+    shape: tuple[int, ...]
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=int))
+
+
+def state_spread(system: CoupledSystem, x: np.ndarray) -> float:
+    """S(x) = sum_i ||x_i||^2 / |N_i| for the global state x (n,)."""
+    parts = system.split_state(x)
+    return float(sum(parts[i] @ parts[i] / len(system.neighbours[i]) for i in range(system.M)))
+
+
+@dataclass
+class StepTally:
+    """What the summary needs beyond the arrays, kept small whatever the run's length.
+
+    Attributes
+    ----------
+    steps : int
+    all_solved : bool
+        Every agent's status of every step was a solved one.
+    notes : list of str
+        ``k=K: note`` for the steps that have a note (events, not steps: bounded by what happens).
+    reasons : list of str
+        The fallback reasons seen; their index is the code stored per step and agent ("" is 0).
+    """
+
+    steps: int = 0
+    all_solved: bool = True
+    notes: list[str] = field(default_factory=list)
+    reasons: list[str] = field(default_factory=lambda: [""])
+
+    def code(self, reason: str) -> int:
+        try:
+            return self.reasons.index(reason)
+        except ValueError:
+            self.reasons.append(reason)
+            return len(self.reasons) - 1
+
+
+SOLVED = ("solved", "solved_inaccurate")
+
+
+class StepColumns:
+    """Rows of step numbers, appended one per completed step.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    path : Path, optional
+        The rows file; None keeps the rows in memory.
+    """
+
+    def __init__(self, system: CoupledSystem, path: Path | None = None) -> None:
+        self.system = system
+        self.path = path
+        self.tally = StepTally()
+        self.layout: dict[str, Column] | None = None
+        self.width = 0
+        self.last: StepRecord | None = None
+        self._rows: list[np.ndarray] = []
+        self._file = None if path is None else open(path, "ab", buffering=0)
+        self._end = 0 if path is None else self._file.tell()
+
+    # ------------------------------------------------------------------ writing
+    def _values(self, rec: StepRecord) -> dict[str, np.ndarray]:
+        M = self.system.M
+        values = {
+            "x": rec.x, "u": rec.u, "alpha": rec.alpha, "beta": rec.beta, "J": rec.J, "S": rec.S,
+            "J_agents": rec.J_agents, "solve_time": rec.solve_time, "qp_iterations": rec.qp_iterations,
+            "fallback": rec.fallback, "latency": rec.latency if rec.latency else [np.nan] * M,
+            "rounds": rec.rounds, "step_time": rec.step_time, "max_change": rec.max_change,
+            "fallback_code": [self.tally.code(r) for r in rec.fallback_reason],
+        }
+        if rec.r is not None:
+            values["r"] = rec.r
+        for i, s in enumerate(self.system.subsystems):
+            values[f"plan_z_{s.name}"] = rec.plans_z[i]
+            values[f"plan_v_{s.name}"] = rec.plans_v[i]
+        return {key: np.asarray(v, dtype=float) for key, v in values.items()}
+
+    def _set_layout(self, values: dict[str, np.ndarray]) -> None:
+        start, layout = 0, {}
+        for key, v in values.items():
+            layout[key] = Column(start, v.shape)
+            start += v.size
+        self.layout, self.width = layout, start
+
+    def add(self, rec: StepRecord) -> bytes:
+        """Append one step; returns the bytes written (for the caller's error handling)."""
+        values = self._values(rec)
+        if self.layout is None:
+            self._set_layout(values)
+        row = np.concatenate([values[key].ravel() for key in self.layout])
+        if row.size != self.width:
+            raise ValueError(f"step {rec.k}: {row.size} values, the rows of this run have {self.width}")
+        data = b""
+        if self._file is None:
+            self._rows.append(row)
+        else:
+            data = row.tobytes()
+            self._write(data)
+        t = self.tally
+        t.steps += 1
+        t.all_solved = t.all_solved and all(s in SOLVED for s in rec.status)
+        if rec.note:
+            t.notes.append(rec.note if rec.note.startswith("k=") else f"k={rec.k}: {rec.note}")
+        self.last = rec
+        return data
+
+    def _write(self, data: bytes) -> None:
+        """Write one whole row, or none of it (OSError, the file cut back to its last row)."""
+        view = memoryview(data)
+        try:
+            while view:
+                written = self._file.write(view)
+                view = view[written:]
+        except OSError:
+            try:
+                os.truncate(self.path, self._end)
+                self._file.seek(self._end)
+            except OSError:
+                pass
+            raise
+        self._end += len(data)
+
+    def close(self) -> None:
+        if self._file is not None and not self._file.closed:
+            self._file.close()
+
+    # ------------------------------------------------------------------ reading
+    def _matrix(self) -> np.ndarray:
+        """All rows, shape (K, width): a read-only memory map of the file, or the rows in memory."""
+        K = self.tally.steps
+        if self._file is None:
+            return np.vstack(self._rows) if self._rows else np.zeros((0, self.width))
+        if K == 0 or self.width == 0:
+            return np.zeros((0, self.width))
+        return np.memmap(self.path, dtype=np.float64, mode="r", shape=(K, self.width))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays of ``trajectory.npz`` (see :func:`dmpc.records.run_folder.trajectory_arrays`).
+
+        Plus ``fallback_code`` (K, M): the index in ``tally.reasons`` of each agent's fallback reason.
+        Large arrays are views of the memory map; read them a block of rows at a time.
+        """
+        system, M = self.system, self.system.M
+        if self.tally.steps == 0:
+            empty = np.zeros((0, M))
+            return {"x": system.x0[None, :], "u": np.zeros((0, system.m)), "alpha": np.zeros((1, system.n)),
+                    "beta": np.zeros(1), "J": np.zeros(0), "S": np.array([state_spread(system, system.x0)]),
+                    "J_agents": empty, "solve_time": empty, "qp_iterations": empty.astype(int),
+                    "fallback": empty.astype(bool), "latency": empty, "rounds": np.zeros(0, int),
+                    "step_time": np.zeros(0), "max_change": np.zeros(0), "fallback_code": empty.astype(int)}
+        rows = self._matrix()
+        K = rows.shape[0]
+        last = self.last
+        final = {"x": last.x_next, "alpha": last.alpha_next, "beta": last.beta_next,
+                 "S": state_spread(system, last.x_next), "r": last.r_next}
+        out = {}
+        for key, col in self.layout.items():
+            block = rows[:, col.start:col.start + col.size].reshape((K,) + col.shape)
+            if key in FINAL:
+                block = np.concatenate([block, np.asarray(final[key], float).reshape((1,) + col.shape)])
+            if key in _INT or key == "fallback_code":
+                block = block.astype(int)
+            elif key in _BOOL:
+                block = block.astype(bool)
+            out[key] = block
+        return out
+
+
+def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """``np.savez`` that copies each array a block of rows at a time (memory maps stay unread)."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for key, value in arrays.items():
+            arr = value if isinstance(value, np.ndarray) else np.asarray(value)
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array_header_2_0(fh, {"descr": np.lib.format.dtype_to_descr(arr.dtype),
+                                                          "fortran_order": False, "shape": arr.shape})
+                if arr.ndim == 0 or arr.shape[0] <= BLOCK_ROWS:
+                    fh.write(np.ascontiguousarray(arr).tobytes())
+                    continue
+                for start in range(0, arr.shape[0], BLOCK_ROWS):
+                    fh.write(np.ascontiguousarray(arr[start:start + BLOCK_ROWS]).tobytes())
+    tmp.replace(path)

@@ -1,0 +1,383 @@
+"""The page: one Bokeh document per browser tab, kept up to date from a RunState.
+
+A timer of the document reads what the state gained since the last read and streams it into
+the plots' data sources; nothing on the page can reach the run. The slider picks the step k
+shown: the plots show the run up to k, the readout the values at k, and the agent table and
+the graph the agents' states at k. While the slider stays at the newest step it follows the
+run as it goes; the replay button plays the run on from the slider's step (from the start when
+the slider is at the end).
+"""
+from __future__ import annotations
+
+import bisect
+import html
+import math
+
+from bokeh.layouts import column, gridplot, row
+from bokeh.models import ColumnDataSource, Div, HoverTool, InlineStyleSheet, Range1d, Slider, Span, Toggle
+from bokeh.palettes import Category10_10
+from bokeh.plotting import figure
+
+from dmpc.watch.state import RunState, StateRow, StepRow
+from dmpc.watch.views import (AgentHistory, agent_states, agent_table, graph_tables, readout_html, summary_html,
+                              table_html, verdict_of)
+
+SHOWN = 8  # subsystems with their own plots (the first ones, in scenario order)
+TICK_MS = 500  # the page is redrawn at most this often: each redraw costs the browser tens of ms
+PLAY_MS = 150
+WINDOW = 20_000  # rows a plot holds at most: a longer run shows its latest steps
+BOUND = dict(line_color="#d62728", line_dash="dashed", line_width=1.5)
+TABLES = """
+table.dmpc-agents, table.dmpc-readout, .dmpc-summary table {border-collapse: collapse; font-size: 10pt}
+table.dmpc-agents td, table.dmpc-agents th {border-bottom: 1px solid #ddd; padding: 3px 10px; text-align: left}
+table.dmpc-readout td, table.dmpc-readout th, .dmpc-summary td {padding: 1px 12px 1px 0; text-align: left}
+"""
+
+
+def _figure(title: str, x_range, y_axis_type: str = "linear"):
+    fig = figure(title=title, height=230, width=360, x_axis_label="k", y_axis_type=y_axis_type, x_range=x_range,
+                 tools="pan,wheel_zoom,box_zoom,reset,save", toolbar_location="right")
+    fig.title.text_font_size = "11pt"
+    return fig
+
+
+class WatchPage:
+    """The live view of one run in one browser tab.
+
+    Parameters
+    ----------
+    doc : bokeh.document.Document
+    state : RunState
+    live : bool
+        The run is watched over the bus (the page says so, and follows the agents' liveliness).
+    """
+
+    def __init__(self, doc, state: RunState, live: bool) -> None:
+        self.doc = doc
+        self.state = state
+        self.live = live
+        self.epoch = -1
+        self.version = -1
+        self.state_rows: list[StateRow] = []
+        self.step_rows: list[StepRow] = []
+        self.state_ks: list[int] = []
+        self.step_ks: list[int] = []
+        self.shown_states = 0
+        self.shown_steps = 0
+        self.follow = True
+        self.built = False
+        self.meta = None
+        self.snap = None
+        self.history: AgentHistory | None = None
+        self._play = None
+        # the Divs that change with every step have a fixed size: new text then redraws the Div
+        # alone, not the whole layout
+        self.header = Div(name="header", width=1450, height=64)
+        self.counter = Div(name="step-counter", width=1000, height=36, styles={"font-size": "16pt"})
+        self.status = Div(name="status", width=1000, height=20)
+        self.root = column(self.header, self.counter, self.status, name="root")
+        doc.title = "dmpc watch"
+        doc.add_root(self.root)
+        doc.add_periodic_callback(self.tick, TICK_MS)
+        self.tick()
+
+    # -- building ----------------------------------------------------------------------------
+    def _build(self, meta) -> None:
+        self.meta = meta
+        self.history = AgentHistory(meta)
+        self.slider = Slider(start=0, end=1, value=0, step=1, title="step k", name="step-slider", width=600,
+                             disabled=True)
+        self.slider.on_change("value", lambda attr, old, new: self._on_slider(new))
+        self.play = Toggle(label="▶ replay", name="play", width=110, button_type="primary")
+        self.play.on_change("active", lambda attr, old, new: self._on_play(new))
+        tables = InlineStyleSheet(css=TABLES)
+        scroll = {"overflow-y": "auto"}
+        rows = min(meta.M, SHOWN)
+        self.readout = Div(name="readout", width=700, height=50 + 22 * rows, stylesheets=[tables], styles=scroll)
+        self.summary = Div(name="summary", width=600, stylesheets=[tables])  # changes once, at the end
+        self.cursors: list[Span] = []
+        steps = ColumnDataSource({"k": [0, max(meta.steps, 1)]}, name="step-range")
+        x_range = Range1d(0, max(meta.steps, 1), bounds=(-1, max(meta.steps, 1) + 1))  # shared: zoom one, zoom all
+
+        def bound_line(fig, value: float) -> None:
+            # a glyph, not a Span: the y range then includes the bound
+            column = f"bound{len(steps.data)}"
+            steps.data[column] = [value, value]
+            fig.line("k", column, source=steps, **BOUND)
+
+        self.cost = ColumnDataSource({"k": [], "J": []}, name="cost")
+        fig_cost = _figure("cost J(k)", x_range, y_axis_type="log")
+        fig_cost.line("k", "J", source=self.cost, line_width=2)
+        fig_cost.scatter("k", "J", source=self.cost, size=4)
+        self.terminal = ColumnDataSource(self._terminal_columns([]), name="terminal")
+        fig_terminal = _figure("terminal box: β(k) and ‖α_i(k)‖∞", x_range)
+        fig_terminal.line("k", "beta", source=self.terminal, line_width=2.5, color="black", legend_label="β")
+        for i, sub in enumerate(meta.subsystems[:SHOWN]):
+            fig_terminal.line("k", f"a{i}", source=self.terminal, color=Category10_10[i % 10],
+                              legend_label=f"‖α_{sub.name}‖∞")
+        fig_terminal.legend.label_text_font_size = "8pt"
+        fig_terminal.legend.click_policy = "hide"
+
+        self.nodes = ColumnDataSource(name="graph-nodes")
+        self.edges = ColumnDataSource(name="graph-edges")
+        self._update_graph()
+        fig_graph = figure(title="communication graph", height=300, width=300, tools="hover,save",
+                           x_range=Range1d(-1.35, 1.35), y_range=Range1d(-1.35, 1.35), toolbar_location=None)
+        fig_graph.axis.visible = False
+        fig_graph.grid.visible = False
+        edges = fig_graph.segment("x0", "y0", "x1", "y1", source=self.edges, line_color="color", line_width=3,
+                                  line_dash="dash")
+        nodes = fig_graph.scatter("x", "y", source=self.nodes, size=26, fill_color="color", line_color="black")
+        fig_graph.text("x", "y", text="name", source=self.nodes, text_align="center", text_baseline="middle",
+                       text_font_size="9pt", text_color="white")
+        hover = fig_graph.select_one(HoverTool)
+        hover.renderers = [nodes, edges]
+        hover.tooltips = [("", "@name @link"), ("state", "@state"), ("faults", "@faults")]
+
+        self.agents = Div(name="agents", width=1100, height=min(70 + 27 * meta.M, 600), stylesheets=[tables],
+                          styles=scroll)
+        self._update_agents()
+
+        self.states: list[ColumnDataSource] = []
+        self.inputs: list[ColumnDataSource] = []
+        panels = []
+        for i, sub in enumerate(meta.subsystems[:SHOWN]):
+            # columns x1 … and u1 … whatever the scenario calls them: its names go in the legends
+            states = ColumnDataSource({"k": [], **{f"x{j + 1}": [] for j in range(sub.n)}}, name=f"states-{sub.name}")
+            inputs = ColumnDataSource({"k": [], **{f"u{j + 1}": [] for j in range(sub.m)}}, name=f"inputs-{sub.name}")
+            self.states.append(states)
+            self.inputs.append(inputs)
+            fig_x = _figure(f"subsystem {sub.name}: states x(k)", x_range)
+            for j in range(sub.n):
+                fig_x.line("k", f"x{j + 1}", source=states, color=Category10_10[j % 10], line_width=2,
+                           legend_label=sub.state_label(j))
+                fig_x.scatter("k", f"x{j + 1}", source=states, color=Category10_10[j % 10], size=3)
+                for bound in (sub.state_lower[j], sub.state_upper[j]):
+                    if math.isfinite(bound):
+                        bound_line(fig_x, bound)
+            fig_u = _figure(f"subsystem {sub.name}: inputs u(k)" + ("" if sub.input_is_box else " (U: bounding box)"),
+                            x_range)
+            for j in range(sub.m):
+                fig_u.step("k", f"u{j + 1}", source=inputs, mode="after", color=Category10_10[j % 10], line_width=2,
+                           legend_label=sub.input_label(j))
+                for bound in (sub.input_lower[j], sub.input_upper[j]):
+                    if math.isfinite(bound):
+                        bound_line(fig_u, bound)
+            for fig in (fig_x, fig_u):
+                fig.legend.label_text_font_size = "8pt"
+                fig.legend.location = "top_right"
+            panels += [fig_x, fig_u]
+        for fig in [fig_cost, fig_terminal] + panels:
+            cursor = Span(location=0, dimension="height", line_color="#555555", line_dash="dotted", visible=False)
+            fig.add_layout(cursor)
+            self.cursors.append(cursor)
+        self.root.children = [
+            self.header, self.counter, self.status,
+            row(self.slider, self.play),
+            row(self.readout, self.summary),
+            row(fig_cost, fig_terminal, fig_graph),
+            self.agents,
+            gridplot(panels, ncols=4, toolbar_location="right", merge_tools=True),
+        ]
+        self.built = True
+
+    # -- data ------------------------------------------------------------------------------------
+    def _terminal_columns(self, rows: list[StateRow]) -> dict[str, list]:
+        data = {"k": [r.k for r in rows], "beta": [r.beta for r in rows]}
+        for i, xs in enumerate(self.meta.state_slices()[:SHOWN]):
+            data[f"a{i}"] = [max((abs(v) for v in r.alpha[xs]), default=math.nan) for r in rows]
+        return data
+
+    def _state_columns(self, rows: list[StateRow]) -> list[dict]:
+        """Data for the terminal plot and each subsystem's state plot."""
+        ks = [r.k for r in rows]
+        out = [self._terminal_columns(rows)]
+        for sub, xs in zip(self.meta.subsystems[:SHOWN], self.meta.state_slices()):
+            data = {"k": list(ks)}  # each source its own lists: streaming extends them in place
+            for j in range(sub.n):
+                data[f"x{j + 1}"] = [r.x[xs.start + j] for r in rows]
+            out.append(data)
+        return out
+
+    def _step_columns(self, rows: list[StepRow]) -> list[dict]:
+        """Data for the cost plot and each subsystem's input plot."""
+        ks = [r.k for r in rows]
+        out = [{"k": ks, "J": [r.J for r in rows]}]
+        for sub, us in zip(self.meta.subsystems[:SHOWN], self.meta.input_slices()):
+            data = {"k": list(ks)}
+            for j in range(sub.m):
+                data[f"u{j + 1}"] = [r.u[us.start + j] for r in rows]
+            out.append(data)
+        return out
+
+    @staticmethod
+    def _sync(sources: list[ColumnDataSource], rows: list, shown: int, target: int, columns) -> int:
+        """Bring ``sources`` from the first ``shown`` rows to the first ``target``; returns target."""
+        if target > shown and shown >= max(0, target - WINDOW):
+            for source, data in zip(sources, columns(rows[shown:target])):
+                source.stream(data, rollover=WINDOW)
+        elif target != shown:
+            for source, data in zip(sources, columns(rows[max(0, target - WINDOW):target])):
+                source.data = data
+        return target
+
+    # -- updates ---------------------------------------------------------------------------------
+    def tick(self) -> None:
+        """Take what the run's state gained and show it."""
+        snap = self.state.read(self.epoch, len(self.state_rows), len(self.step_rows))
+        if snap.version == self.version:
+            return
+        self.version = snap.version
+        if snap.epoch != self.epoch:
+            self.epoch = snap.epoch
+            self.state_rows, self.step_rows, self.state_ks, self.step_ks = [], [], [], []
+            self.shown_states = self.shown_steps = -1  # anything differs: the sources are replaced
+            if self.history is not None:
+                self.history = AgentHistory(self.meta)
+        self.state_rows += snap.state_rows
+        self.step_rows += snap.step_rows
+        self.state_ks += [r.k for r in snap.state_rows]
+        self.step_ks += [r.k for r in snap.step_rows]
+        self.snap = snap
+        new_steps = snap.step_rows
+        if not self.built and snap.meta is not None:
+            self._build(snap.meta)
+            new_steps = self.step_rows  # those read before the description came, too
+        if self.built:
+            self.history.add(new_steps)
+            last = self.state_ks[-1] if self.state_ks else 0
+            self.slider.end = max(1, last)
+            self.slider.disabled = not self.state_ks
+            if self.follow and self.slider.value != last:
+                self.slider.value = last  # calls _on_slider
+            else:
+                self._refresh()
+        self._update_text()
+
+    def _on_slider(self, value: int) -> None:
+        self.follow = value >= max((self.state_ks or [0])[-1], 1)
+        self._refresh()
+
+    def _on_play(self, active: bool) -> None:
+        if active:
+            if self.slider.value >= self.slider.end:
+                self.slider.value = 0
+            self.play.label = "❚❚ pause"
+            self._play = self.doc.add_periodic_callback(self._advance, PLAY_MS)
+        else:
+            self.play.label = "▶ replay"
+            if self._play is not None:
+                self.doc.remove_periodic_callback(self._play)
+                self._play = None
+
+    def _advance(self) -> None:
+        if self.slider.value < self.slider.end:
+            self.slider.value += 1
+        else:
+            self.play.active = False
+
+    def _refresh(self) -> None:
+        """Show the run up to the slider's step."""
+        k = self.slider.value
+        n_states = bisect.bisect_right(self.state_ks, k)
+        n_steps = bisect.bisect_right(self.step_ks, k)
+        self.shown_states = self._sync([self.terminal] + self.states, self.state_rows, self.shown_states, n_states,
+                                       self._state_columns)
+        self.shown_steps = self._sync([self.cost] + self.inputs, self.step_rows, self.shown_steps, n_steps,
+                                      self._step_columns)
+        for cursor in self.cursors:
+            cursor.location = k
+            cursor.visible = not self.follow
+        row_k = self.state_rows[n_states - 1] if n_states and self.state_ks[n_states - 1] == k else None
+        step_k = self.step_rows[n_steps - 1] if n_steps and self.step_ks[n_steps - 1] == k else None
+        _set(self.readout, "text", readout_html(self.meta, row_k, step_k, SHOWN))
+        self._update_agents(n_steps)
+        self._update_graph(n_steps)
+        snap = self.snap
+        _set(self.summary, "text", summary_html(snap.summary, snap.summary_from) if snap.summary else (
+            "<i>the verdict and summary appear here when the run ends</i>"))
+
+    def _alive_now(self) -> dict[str, bool] | None:
+        """The agents' liveliness as the bus shows it now (live, following, before the end)."""
+        snap = self.snap
+        if not self.live or not self.follow or snap is None or snap.ended:
+            return None
+        tokens = {role[len("agent-"):]: alive for role, alive in snap.alive.items() if role.startswith("agent-")}
+        if not tokens and snap.plant.get("alive") is not None:
+            tokens = {name: name in snap.plant["alive"] for name in self.meta.names}
+        return tokens or None
+
+    def _update_agents(self, n: int | None = None) -> None:
+        n = len(self.step_rows) if n is None else n
+        last = self.step_rows[n - 1] if n else None
+        snap = self.snap
+        self.table = agent_table(self.meta, self.history, n, last, self._alive_now(), snap.plant if snap else {},
+                                 snap.summary if snap else None)
+        reasons = ((snap.summary if snap else None) or {}).get("rejected_reasons") or (
+            snap.plant.get("rejected_reasons") if snap else None) or {}
+        notes = []
+        if reasons:
+            notes.append("dropped by the plant, by reason: " + ", ".join(f"{r}: {c}" for r, c in reasons.items()))
+        if self.meta.M > SHOWN:
+            notes.append(f"the first {SHOWN} of {self.meta.M} subsystems have plots below; the table lists every agent")
+        _set(self.agents, "text", table_html(self.table) + "".join(f"<p><i>{html.escape(n)}</i></p>" for n in notes))
+
+    def _update_graph(self, n: int | None = None) -> None:
+        n = len(self.step_rows) if n is None else n
+        last = self.step_rows[n - 1] if n else None
+        alive = self.history.alive(n)
+        alive.update(self._alive_now() or {})
+        snap = self.snap
+        plant_alive = not (self.live and snap is not None and snap.alive.get("plant") is False and self.follow
+                           and snap.summary is None)
+        nodes, edges = graph_tables(self.meta, agent_states(self.meta, last, alive), plant_alive)
+        _set(self.nodes, "data", nodes)
+        _set(self.edges, "data", edges)
+
+    def _update_text(self) -> None:
+        snap = self.snap
+        meta = snap.meta
+        if meta is None:
+            self.header.text = (f"<h2>dmpc watch</h2>run {html.escape(snap.run_id or '?')} · "
+                                f"{html.escape(snap.source)}")
+            self.counter.text = "waiting for the run's description"
+        else:
+            mode = meta.mode + (f", dt {meta.dt:g} s" if meta.mode == "realtime" else "")
+            self.header.text = (f"<h2>dmpc watch: {html.escape(meta.scenario)}</h2>run "
+                                f"<b>{html.escape(snap.run_id or meta.run_id)}</b> · method {html.escape(meta.method)}"
+                                f" · {html.escape(mode)} · {meta.M} agents, horizon {meta.horizon} · "
+                                f"{html.escape(snap.source)}")
+            done = len(self.step_rows)
+            missing = (self.step_ks[-1] + 1 - done) if self.step_ks else 0
+            gap = f" ({missing} not received)" if missing else ""
+            self.counter.text = (f"step <b class='dmpc-step'>{done}</b> of {meta.steps}{gap} · "
+                                 f"<span class='dmpc-run-state'>{self._run_state()}</span>")
+        notes = [snap.connection] if snap.connection else []
+        if snap.dropped:
+            notes.append(f"{snap.dropped} messages or lines could not be used ({'; '.join(snap.problems[:2])})")
+        self.status.text = "<small>" + " · ".join(html.escape(n) for n in notes) + "</small>"
+
+    def _run_state(self) -> str:
+        snap = self.snap
+        if snap.summary is not None:
+            return f"ended, verdict {html.escape(verdict_of(snap.summary))}"
+        if snap.ended:
+            return "the plant has gone (no summary received)"
+        if not self.step_rows:
+            return "waiting for the first step"
+        return "running" if self.live else "incomplete (no summary.json yet)"
+
+
+def _set(model, attr: str, value) -> None:
+    """Set a property only when it changes: every change is sent to the browser and redrawn there."""
+    if getattr(model, attr) != value:
+        setattr(model, attr, value)
+
+
+def page_factory(state: RunState, live: bool):
+    """A Bokeh application function that gives each browser tab its own page."""
+
+    def make(doc) -> None:
+        WatchPage(doc, state, live)
+
+    return make

@@ -1,0 +1,235 @@
+"""Everything an observer knows about one run, gathered from the bus or a run folder.
+
+Feeds (the bus observer's thread, the folder reader) write; every page session reads. Rows
+are kept in step order and only appended; a row that arrives out of order (a gap filled from
+the run folder) is inserted and bumps ``epoch``, which tells readers to start over.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from dataclasses import dataclass, field
+
+from dmpc.watch.meta import RunMeta
+
+
+def floats(values) -> list[float]:
+    """A JSON list of numbers (None for NaN) as floats."""
+    return [math.nan if v is None else float(v) for v in values]
+
+
+def number(value) -> float:
+    return math.nan if value is None else float(value)
+
+
+@dataclass(frozen=True)
+class StateRow:
+    """x(k), alpha(k), beta(k): known for k = 0 .. K (one more than the steps)."""
+
+    k: int
+    x: list[float]
+    alpha: list[float]
+    beta: float
+
+
+@dataclass(frozen=True)
+class StepRow:
+    """What happened in step k (the fields of a ``steps.jsonl`` line that the page shows)."""
+
+    k: int
+    u: list[float]
+    J: float
+    status: list[str]
+    fallback: list[bool]
+    fallback_reason: list[str]
+    solve_time: list[float]
+    latency: list[float]
+    step_time: float
+    note: str
+
+
+class BadStep(ValueError):
+    """A step line that cannot be shown: missing fields or the wrong dimensions."""
+
+
+def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, StateRow]:
+    """The step row and the state rows k and k+1 of one ``steps.jsonl`` line.
+
+    Raises
+    ------
+    BadStep
+        A field is missing or malformed, or (with ``meta``) a dimension does not match.
+    """
+    try:
+        k = int(line["k"])
+        if k < 0:
+            raise ValueError("negative step")
+        step = StepRow(k=k, u=floats(line["u"]), J=number(line["J"]), status=[str(s) for s in line["status"]],
+                       fallback=[bool(f) for f in line["fallback"]],
+                       fallback_reason=[str(r) for r in line["fallback_reason"]],
+                       solve_time=floats(line["solve_time"]), latency=floats(line.get("latency") or []),
+                       step_time=number(line.get("step_time")), note=str(line.get("note") or ""))
+        now = StateRow(k, floats(line["x"]), floats(line["alpha"]), number(line["beta"]))
+        nxt = StateRow(k + 1, floats(line["x_next"]), floats(line["alpha_next"]), number(line["beta_next"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise BadStep(f"not a step line ({type(exc).__name__}: {exc})") from None
+    if meta is not None:
+        n = sum(s.n for s in meta.subsystems)
+        m = sum(s.m for s in meta.subsystems)
+        M = meta.M
+        sizes = {"x": len(now.x), "x_next": len(nxt.x), "u": len(step.u), "status": len(step.status),
+                 "fallback": len(step.fallback), "solve_time": len(step.solve_time)}
+        want = {"x": n, "x_next": n, "u": m, "status": M, "fallback": M, "solve_time": M}
+        wrong = [key for key in sizes if sizes[key] != want[key]]
+        if wrong:
+            raise BadStep(f"step {k}: {wrong[0]} has {sizes[wrong[0]]} entries, the run {want[wrong[0]]}")
+    return step, now, nxt
+
+
+@dataclass
+class Snapshot:
+    """What a reader gets from :meth:`RunState.read`: new rows since its last read, and the rest."""
+
+    epoch: int
+    version: int
+    state_rows: list[StateRow]
+    step_rows: list[StepRow]
+    meta: RunMeta | None
+    plant: dict
+    alive: dict[str, bool]
+    summary: dict | None
+    summary_from: str
+    connection: str
+    ended: bool
+    dropped: int
+    source: str
+    run_id: str
+    problems: list[str] = field(default_factory=list)
+
+
+class RunState:
+    """One run as the observer knows it; every method is thread-safe.
+
+    Parameters
+    ----------
+    source : str
+        Where the data comes from, for the page (e.g. ``run folder runs/x``).
+    run_id : str
+        The run's id, when known before its description arrives.
+    """
+
+    def __init__(self, source: str, run_id: str = "") -> None:
+        self._lock = threading.Lock()
+        self.source = source
+        self.run_id = run_id
+        self.meta: RunMeta | None = None
+        self.version = 0
+        self.epoch = 0
+        self._state_rows: list[StateRow] = []
+        self._state_ks: list[int] = []
+        self._step_rows: list[StepRow] = []
+        self._step_ks: list[int] = []
+        self.plant: dict = {}
+        self.alive: dict[str, bool] = {}
+        self.summary: dict | None = None
+        self.summary_from = ""
+        self.connection = ""
+        self.plant_gone = False
+        self.dropped = 0
+        self.problems: list[str] = []
+
+    # -- writers ---------------------------------------------------------------------------
+    def _changed(self) -> None:
+        self.version += 1
+
+    def set_meta(self, meta: RunMeta) -> None:
+        with self._lock:
+            if self.meta is None:
+                self.meta = meta
+                self.run_id = self.run_id or meta.run_id
+                self._changed()
+
+    def add_step(self, line: dict) -> bool:
+        """Add one ``steps.jsonl`` line; False if it is malformed (counted) or known already."""
+        try:
+            step, now, nxt = parse_step(line, self.meta)
+        except BadStep as exc:
+            self.note_dropped(str(exc))
+            return False
+        with self._lock:
+            at = _insert(self._step_rows, self._step_ks, step)
+            if at is None:
+                return False
+            in_order = at == len(self._step_ks) - 1
+            for row in (now, nxt):
+                at = _insert(self._state_rows, self._state_ks, row)
+                in_order = in_order and (at is None or at == len(self._state_ks) - 1)
+            if not in_order:
+                self.epoch += 1
+            self._changed()
+            return True
+
+    def set_plant(self, status: dict) -> None:
+        with self._lock:
+            self.plant = dict(status)
+            self._changed()
+
+    def set_alive(self, role: str, alive: bool) -> None:
+        with self._lock:
+            self.alive[role] = alive
+            if role == "plant" and not alive:
+                self.plant_gone = True
+            self._changed()
+
+    def set_summary(self, summary: dict, source: str) -> None:
+        """The run's summary; one from the run folder is kept over one from the bus."""
+        with self._lock:
+            if self.summary_from == "run folder" and source != "run folder":
+                return
+            self.summary = dict(summary)
+            self.summary_from = source
+            self._changed()
+
+    def set_connection(self, text: str) -> None:
+        with self._lock:
+            if text != self.connection:
+                self.connection = text
+                self._changed()
+
+    def note_dropped(self, why: str) -> None:
+        """Count a message or line that could not be used (the first few reasons are kept)."""
+        with self._lock:
+            self.dropped += 1
+            if len(self.problems) < 5:
+                self.problems.append(why[:200])
+            self._changed()
+
+    # -- readers ---------------------------------------------------------------------------
+    @property
+    def steps(self) -> int:
+        with self._lock:
+            return len(self._step_rows)
+
+    def read(self, epoch: int, state_seen: int, steps_seen: int) -> Snapshot:
+        """Rows added since a reader saw ``state_seen`` state rows and ``steps_seen`` step rows in
+        ``epoch`` (every row when the epoch has changed), and the current everything else."""
+        with self._lock:
+            if epoch != self.epoch:
+                state_seen = steps_seen = 0
+            return Snapshot(epoch=self.epoch, version=self.version, state_rows=self._state_rows[state_seen:],
+                            step_rows=self._step_rows[steps_seen:], meta=self.meta, plant=dict(self.plant),
+                            alive=dict(self.alive), summary=self.summary, summary_from=self.summary_from,
+                            connection=self.connection, ended=self.summary is not None or self.plant_gone,
+                            dropped=self.dropped, source=self.source, run_id=self.run_id,
+                            problems=list(self.problems))
+
+
+def _insert(rows: list, ks: list[int], row) -> int | None:
+    """Insert ``row`` in k order; its index, or None if its k is there already."""
+    at = bisect.bisect_left(ks, row.k)
+    if at < len(ks) and ks[at] == row.k:
+        return None
+    ks.insert(at, row.k)
+    rows.insert(at, row)
+    return at

@@ -1,0 +1,198 @@
+"""Telemetry: the plant publishes each completed step for observers, best effort.
+
+Keys (``bus.keys.telemetry``): ``dmpc/<run>/telemetry/step`` (one message per completed
+step, the ``steps.jsonl`` line plus the plant's view of the agents), ``.../meta`` (the run's
+description, :mod:`.meta`, repeated every second so that a late observer learns it) and
+``.../end`` (``summary.json``'s content once the run has ended). Payloads are JSON objects
+``{"type": ..., "run": ..., ...}``.
+
+The plant's thread only appends the finished record to a bounded queue, and only while some
+subscriber matches (the publishing thread looks every half second); that thread encodes and
+publishes it, with congestion control DROP and best-effort reliability at low priority. A slow
+or stopped observer therefore loses telemetry, and never delays the plant.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import math
+import threading
+import time
+
+
+from dmpc.bus import keys
+from dmpc.records.run_folder import jsonable, step_line  # noqa: F401 - step_line: the telemetry's step message
+
+KINDS = ("step", "meta", "end")
+ENCODING = "application/json"
+META_EVERY = 1.0  # seconds between two copies of the run's description
+QUEUE = 256  # steps waiting for the publishing thread; the oldest are dropped beyond it
+MAX_PAYLOAD = 16 << 20  # an observer drops larger messages unread
+
+
+plain = jsonable
+
+
+def encode(kind: str, run: str, **fields) -> bytes:
+    """One telemetry message as JSON bytes."""
+    return json.dumps({"type": kind, "run": run, **plain(fields)}, allow_nan=False,
+                      separators=(",", ":")).encode()
+
+
+class TelemetryError(ValueError):
+    """A telemetry payload that is not a message of this run."""
+
+
+def decode(payload: bytes, run: str) -> dict:
+    """The message in ``payload``, checked to be a known kind of run ``run``.
+
+    Raises
+    ------
+    TelemetryError
+        Too large, not a JSON object, an unknown kind, another run, or the fields of its kind
+        missing.
+    """
+    if len(payload) > MAX_PAYLOAD:
+        raise TelemetryError(f"{len(payload)} bytes is over the limit")
+    try:
+        msg = json.loads(payload)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise TelemetryError(f"not JSON ({exc})") from None
+    if not isinstance(msg, dict) or msg.get("type") not in KINDS:
+        raise TelemetryError("not a telemetry message")
+    if msg.get("run") != run:
+        raise TelemetryError(f"run {msg.get('run')!r}, not {run!r}")
+    need = {"step": ("step", "plant"), "meta": ("meta",), "end": ("summary",)}[msg["type"]]
+    if not all(isinstance(msg.get(k), dict) for k in need):
+        raise TelemetryError(f"a {msg['type']} message without {', '.join(need)}")
+    return msg
+
+
+def plant_status(node) -> dict:
+    """The plant's view of the agents now: liveliness, readiness, dropped messages."""
+    return {"alive": sorted(node.alive), "ready": sorted(node.ready), "rejected": dict(node.rejects.counts),
+            "rejected_reasons": dict(node.rejects.reasons), "duplicates": node.coordinator.duplicates}
+
+
+class Telemetry:
+    """Publishes a run's steps, description and summary on its own thread.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        The plant's session.
+    run_id : str
+    meta : dict
+        The run's description (:func:`dmpc.watch.meta.meta_json`).
+    meta_every : float
+        Seconds between two copies of the description while an observer listens.
+
+    Attributes
+    ----------
+    watched : bool
+        Some subscriber matches the step key (as of the publishing thread's last look).
+    sent, overflow, errors : int
+        Messages published, steps dropped because the queue was full, and failed puts.
+    """
+
+    def __init__(self, session, run_id: str, meta: dict, meta_every: float = META_EVERY) -> None:
+        import zenoh
+
+        self.run_id = run_id
+        options = dict(encoding=ENCODING, congestion_control=zenoh.CongestionControl.DROP,
+                       reliability=zenoh.Reliability.BEST_EFFORT, priority=zenoh.Priority.DATA_LOW, express=False)
+        self._publishers = {kind: session.declare_publisher(keys.telemetry(run_id, kind), **options) for kind in KINDS}
+        self._meta = encode("meta", run_id, meta=meta)
+        self._meta_every = meta_every
+        self._meta_at = -math.inf
+        self._queue: collections.deque = collections.deque(maxlen=QUEUE)
+        self._wake = threading.Event()
+        self._closing = False
+        self._end: bytes | None = None
+        self.watched = False
+        self.sent = 0
+        self.overflow = 0
+        self.errors = 0
+        self._thread = threading.Thread(target=self._loop, name="dmpc-telemetry", daemon=True)
+        self._thread.start()
+
+    # -- the plant's thread ----------------------------------------------------------------
+    def step(self, rec, node) -> None:
+        """Queue a completed step with the plant's status (``node``: the PlantNode) if an observer
+        listens; never blocks."""
+        if not self.watched:
+            return
+        if len(self._queue) == self._queue.maxlen:
+            self.overflow += 1
+        self._queue.append(("step", rec, plant_status(node)))
+        self._wake.set()
+
+    def summary(self, summary: dict) -> None:
+        """Queue the run's summary; it is sent again on :meth:`close`."""
+        self._queue.append(("end", summary, None))
+        self._wake.set()
+
+    def close(self, timeout: float = 1.0) -> None:
+        """Send what is queued, stop the thread and undeclare the publishers; idempotent."""
+        if self._closing:
+            return
+        self._closing = True
+        self._wake.set()
+        self._thread.join(timeout)
+        if self._end is not None:
+            self._put("end", self._end)  # a second copy: the first may have been dropped
+        for publisher in self._publishers.values():
+            try:
+                publisher.undeclare()
+            except Exception:  # noqa: BLE001 - best effort on the way out
+                pass
+
+    # -- the publishing thread -------------------------------------------------------------
+    def _put(self, kind: str, payload: bytes) -> None:
+        try:
+            self._publishers[kind].put(payload)
+            self.sent += 1
+        except Exception:  # noqa: BLE001 - telemetry must never disturb the run
+            self.errors += 1
+
+    def _observed(self) -> bool:
+        try:
+            return self._publishers["step"].matching_status.matching
+        except Exception:  # noqa: BLE001
+            return False
+
+    def _loop(self) -> None:
+        while True:
+            self._wake.wait(0.5)
+            self._wake.clear()
+            self.watched = observed = self._observed()
+            if observed and time.monotonic() - self._meta_at >= self._meta_every:
+                self._meta_at = time.monotonic()
+                self._put("meta", self._meta)
+            while self._queue:
+                kind, item, status = self._queue.popleft()
+                if kind == "end":
+                    self._end = encode("end", self.run_id, summary=item)
+                    self._put("end", self._end)
+                elif observed:
+                    try:
+                        payload = encode("step", self.run_id, step=step_line(item), plant=status)
+                    except Exception:  # noqa: BLE001 - a record that does not encode is skipped
+                        self.errors += 1
+                        continue
+                    self._put("step", payload)
+            if self._closing:
+                return
+
+
+def open_telemetry(bus, run_id: str, prepared) -> Telemetry | None:
+    """Telemetry on the Zenoh session under ``bus`` (a fault-injecting wrapper is looked
+    through), or None for a bus without one (the in-memory bus)."""
+    while hasattr(bus, "inner"):
+        bus = bus.inner
+    session = getattr(bus, "session", None)
+    if session is None:
+        return None
+    from dmpc.watch.meta import meta_json
+
+    return Telemetry(session, run_id, meta_json(prepared, run_id))

@@ -1,0 +1,414 @@
+"""The live view without a browser: telemetry, the run's state, the run folder reader, the page's
+documents, the observer's access control and the ``dmpc watch`` command line.
+
+The browser tests are in test_watch_browser.py; a run with and without an observer in
+test_watch_e2e.py; the observer's rights on a secure bus in test_watch_security.py.
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import signal
+import socket
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dmpc.watch.folder import FolderFeed, folder_meta
+from dmpc.watch.meta import RunMeta, meta_json
+from dmpc.watch.state import RunState, StepRow
+from dmpc.watch.telemetry import TelemetryError, decode, encode, step_line
+from dmpc.watch.views import AgentHistory, agent_table, graph_tables, link_state, summary_html, verdict_of
+from tests.e2e_helpers import DMPC, ROOT, wait_for
+from tests.helpers.cli import call, one_error_line
+
+PAPER = ROOT / "scenarios" / "paper.yaml"
+
+
+@pytest.fixture(scope="module")
+def prepared():
+    from dmpc.runtime.setup import prepare
+    from dmpc.scenario import load_scenario
+
+    return prepare(load_scenario(PAPER))
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory, prepared):
+    """A simulated run of the paper's example: (run folder, its StepRecords)."""
+    from dmpc.records.session import RunRecorder
+    from dmpc.runtime.inprocess import simulate
+
+    out = tmp_path_factory.mktemp("watch") / "run"
+    records = []
+    with RunRecorder(out, prepared, show_progress=False) as recorder:
+        def on_step(rec):
+            recorder.on_step(rec)
+            records.append(rec)
+
+        simulate(prepared, on_step)
+        recorder.complete(runtime="in-process")
+    return out, records
+
+
+def lines(folder: Path) -> list[dict]:
+    return [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+
+
+def fed(folder: Path, steps: int | None = None) -> RunState:
+    """A RunState with the folder's description and its first ``steps`` steps (all by default)."""
+    state = RunState(f"run folder {folder}")
+    state.set_meta(folder_meta(folder))
+    for line in lines(folder)[:steps]:
+        assert state.add_step(line)
+    return state
+
+
+# ------------------------------------------------------------------------------ the run's description
+def test_meta_carries_names_bounds_and_graph(prepared):
+    meta = RunMeta.from_json(json.loads(json.dumps(meta_json(prepared, "r-1"))))
+    assert meta.names == ["1", "2", "3", "4"] and meta.run_id == "r-1" and meta.steps == 30 and meta.horizon == 10
+    assert meta.edges == (("1", "2"), ("2", "3"), ("3", "4"))
+    sub = meta.subsystems[1]
+    assert sub.state_names == ("x1", "x2") and sub.input_names == ("u1",)
+    assert sub.input_lower == (-2.5,) and sub.input_upper == (2.5,) and sub.input_is_box
+    assert all(math.isnan(v) for v in sub.state_lower + sub.state_upper)  # no state constraints
+    assert [s.start for s in meta.state_slices()] == [0, 2, 4, 6]
+    assert meta.link_fault("1", "2") == {"delay_ms": 0.0, "jitter_ms": 0.0, "loss": 0.0}
+
+
+def test_a_polytope_is_shown_by_its_bounding_box(prepared):
+    data = json.loads(json.dumps(meta_json(prepared, "r")))
+    # |u1| <= 2 as a polytope of two rows, and a state polytope x1 + x2 <= 1, -x1 <= 3, -x2 <= 4
+    data["subsystems"][0]["input"] = {"H": [[2.0], [-1.0]], "lower": [None, None], "upper": [4.0, 2.0]}
+    data["subsystems"][0]["state"] = {"H": [[1.0, 1.0], [-1.0, 0.0], [0.0, -1.0]], "lower": [None] * 3,
+                                      "upper": [1.0, 3.0, 4.0]}
+    sub = RunMeta.from_json(data).subsystems[0]
+    assert not sub.input_is_box
+    assert sub.input_lower == pytest.approx((-2.0,)) and sub.input_upper == pytest.approx((2.0,))
+    assert sub.state_lower == pytest.approx((-3.0, -4.0)) and sub.state_upper == pytest.approx((5.0, 4.0))
+    with pytest.raises(ValueError, match="meta version"):
+        RunMeta.from_json({**data, "meta_version": 99})
+    with pytest.raises(ValueError, match="not a run description"):
+        RunMeta.from_json({"meta_version": 1})
+
+
+# ---------------------------------------------------------------------------------------- telemetry
+def test_a_step_message_holds_the_steps_jsonl_line(recorded):
+    """Telemetry and the run folder say the same about every step (one format, two writers)."""
+    folder, records = recorded
+    assert [json.loads(json.dumps(step_line(rec))) for rec in records] == lines(folder)
+
+
+def test_telemetry_messages_are_checked(recorded):
+    _, records = recorded
+    payload = encode("step", "r-1", step=step_line(records[3]), plant={"alive": ["1"]})
+    msg = decode(payload, "r-1")
+    assert msg["type"] == "step" and msg["step"]["k"] == 3 and msg["plant"] == {"alive": ["1"]}
+    assert "NaN" not in payload.decode()  # strict JSON: NaN is null
+    for bad, why in [(payload, "run 'r-1', not 'r-2'"), (b"\xff\x00", "not JSON"), (b"[1, 2]", "not a telemetry"),
+                     (encode("plan", "r-2"), "not a telemetry"), (encode("step", "r-2", step={}), "without step, plant"),
+                     (encode("end", "r-2"), "without summary"), (b" " * (17 << 20), "over the limit")]:
+        with pytest.raises(TelemetryError, match=why):
+            decode(bad, "r-2")
+
+
+def test_the_plant_hands_every_step_to_its_telemetry_after_recording_it(prepared):
+    from dmpc.runtime.inprocess import build_run
+
+    recorded, order = [], []
+
+    class Telemetry:
+        def step(self, rec, node):
+            assert recorded and recorded[-1] is rec  # the run folder has it first
+            order.append((rec.k, sorted(node.alive)))
+
+    run = build_run(prepared, recorded.append)
+    run.plant.telemetry = Telemetry()
+    run.bus.run(until=lambda: run.plant.finished, timeout=60)
+    assert [k for k, _ in order] == list(range(30)) and order[0][1] == ["1", "2", "3", "4"]
+
+
+def test_telemetry_reaches_an_observer_only_while_one_listens(recorded, prepared):
+    """Over a real Zenoh session: nothing is encoded without a subscriber; an observer that
+    connects gets the description, every step and the summary."""
+    from dmpc.bus.session import free_tcp_port, open_session, session_config
+    from dmpc.watch.observer import BusObserver
+    from dmpc.watch.telemetry import Telemetry
+
+    folder, records = recorded
+
+    class Node:  # what the telemetry reads of the plant
+        alive, ready = {"1", "2"}, {"1"}
+        coordinator = type("C", (), {"duplicates": 2})()
+        rejects = type("R", (), {"counts": {"3": 1}, "reasons": {"stale": 1}})()
+
+    port = free_tcp_port()
+    session = open_session(session_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    telemetry = Telemetry(session, "r-1", meta_json(prepared, "r-1"), meta_every=0.2)
+    observer = None
+    try:
+        for rec in records[:3]:
+            telemetry.step(rec, Node)
+        time.sleep(0.8)
+        assert telemetry.sent == 0  # nobody listened: nothing was encoded or sent
+        state = RunState("bus", "r-1")
+        observer = BusObserver(state, "r-1", [f"tcp/127.0.0.1:{port}"])
+        observer.start()
+        assert wait_for(lambda: state.meta is not None and telemetry.watched, 10), state.connection
+        for rec in records:  # a step every few ms, as a plant gives them (a burst can outrun a loaded machine)
+            telemetry.step(rec, Node)
+            time.sleep(0.003)
+        summary = json.loads((folder / "summary.json").read_text())
+        telemetry.summary(summary)
+        assert wait_for(lambda: state.steps == len(records) and state.summary is not None, 10), state.steps
+        snap = state.read(-1, 0, 0)
+        assert [r.k for r in snap.step_rows] == list(range(30)) and len(snap.state_rows) == 31
+        assert snap.plant == {"alive": ["1", "2"], "ready": ["1"], "rejected": {"3": 1},
+                              "rejected_reasons": {"stale": 1}, "duplicates": 2}
+        assert snap.summary == summary and snap.summary_from == "bus" and snap.dropped == 0
+        assert snap.state_rows[-1].x == records[-1].x_next.tolist()
+    finally:
+        telemetry.close()
+        if observer is not None:
+            observer.close()
+        session.close()
+
+
+# ----------------------------------------------------------------------------------- the run's state
+def test_state_keeps_steps_in_order_and_starts_readers_over_on_a_late_one(recorded):
+    folder, _ = recorded
+    all_lines = lines(folder)
+    state = RunState("x")
+    state.set_meta(folder_meta(folder))
+    for line in all_lines[:3] + all_lines[5:7]:
+        state.add_step(line)
+    snap = state.read(-1, 0, 0)
+    assert [r.k for r in snap.step_rows] == [0, 1, 2, 5, 6]
+    assert [r.k for r in snap.state_rows] == [0, 1, 2, 3, 5, 6, 7]  # x(k+1) comes with step k
+    later = state.read(snap.epoch, len(snap.state_rows), len(snap.step_rows))
+    assert later.step_rows == [] and later.epoch == snap.epoch
+    assert state.add_step(all_lines[3]) and not state.add_step(all_lines[3])  # a gap filled; a copy ignored
+    after = state.read(snap.epoch, len(snap.state_rows), len(snap.step_rows))
+    assert after.epoch != snap.epoch and [r.k for r in after.step_rows] == [0, 1, 2, 3, 5, 6]
+    bad = dict(all_lines[8], x=[1.0, 2.0])  # the wrong dimension for this run
+    assert not state.add_step(bad) and not state.add_step({"k": "x"})
+    snap = state.read(after.epoch, 0, 0)
+    assert snap.dropped == 2 and "x has 2 entries" in snap.problems[0]
+
+
+def test_folder_feed_reads_a_run_folder_while_it_is_written(tmp_path, recorded):
+    """A half-written last line is left for the next read; summary.json is read when it
+    appears and again when it is replaced."""
+    folder, _ = recorded
+    live = tmp_path / "live"
+    live.mkdir()
+    for name in ("scenario.yaml", "design.json"):
+        shutil.copy(folder / name, live / name)
+    raw = (folder / "steps.jsonl").read_bytes()
+    cut = raw.index(b"\n", raw.index(b'"k": 10')) - 40  # in the middle of step 10's line
+    (live / "steps.jsonl").write_bytes(raw[:cut])
+    state = RunState(f"run folder {live}")
+    feed = FolderFeed(live, state)
+    feed.poll()
+    assert state.meta is not None and state.steps == 10 and state.summary is None
+    with open(live / "steps.jsonl", "ab") as fh:
+        fh.write(raw[cut:])
+    feed.poll()
+    assert state.steps == 30 and state.read(-1, 0, 0).dropped == 0
+    summary = json.loads((folder / "summary.json").read_text())
+    (live / "summary.json").write_text(json.dumps(summary))
+    feed.poll()
+    assert state.summary == summary and state.summary_from == "run folder"
+    (live / "summary.json").write_text(json.dumps({**summary, "agents": {"1": {"solves": 1}}}) + "\n")
+    feed.poll()
+    assert state.summary["agents"] == {"1": {"solves": 1}}
+
+
+def test_folder_feed_for_a_live_run_reads_steps_only_to_fill_gaps_at_the_end(tmp_path, recorded):
+    folder = shutil.copytree(recorded[0], tmp_path / "run")
+    (folder / "summary.json").rename(tmp_path / "summary.json")
+    state = RunState("x")
+    feed = FolderFeed(folder, state, steps=False)
+    feed.poll()
+    assert state.meta is not None and state.steps == 0
+    (tmp_path / "summary.json").rename(folder / "summary.json")
+    feed.poll()
+    assert state.steps == 30 and state.summary is not None
+
+
+def test_a_folder_that_is_not_a_run_is_refused(tmp_path):
+    from dmpc.watch.folder import FolderError
+
+    with pytest.raises(FolderError, match="not a run folder"):
+        folder_meta(tmp_path)
+
+
+# ------------------------------------------------------------------------------------ what is shown
+def step(k: int, fallback=(False,) * 4, reasons=("",) * 4, note: str = "") -> StepRow:
+    return StepRow(k=k, u=[0.0] * 4, J=1.0, status=["missed" if f else "solved" for f in fallback],
+                   fallback=list(fallback), fallback_reason=list(reasons), solve_time=[1e-4] * 4,
+                   latency=[2e-4] * 4, step_time=1e-3, note=note)
+
+
+def test_agent_table_counts_fallbacks_rejoins_and_drops(prepared):
+    meta = RunMeta.from_json(meta_json(prepared, "r"))
+    steps = [step(0), step(1, (False, True, False, False), ("", "missed", "", "")),
+             step(2, (False, True, False, False), ("", "lost", "", ""), note="agent 2 lost"),
+             step(3, note="agent 2 back"), step(4, (True, False, False, False), ("qp infeasible", "", "", ""))]
+    history = AgentHistory(meta)
+    history.add(steps)
+    assert history.fallbacks(5) == [1, 2, 0, 0] and history.fallbacks(2) == [0, 1, 0, 0]
+    assert history.alive(3)["2"] is False and history.alive(4)["2"] is True and history.rejoins(5)["2"] == 1
+    summary = {"rejected": {"3": 4}, "agents": {"3": {"rejected": {"plant": 2}, "rejected_reasons": {"stale": 2}}}}
+    table = agent_table(meta, history, 5, steps[4], None, {"rejected": {"1": 9}}, summary)
+    assert table["fallbacks"] == [1, 2, 0, 0] and table["rejoins"] == [0, 1, 0, 0]
+    assert table["state"] == ["fallback", "ok", "ok", "ok"]
+    assert table["dropped_plant"] == [0, 0, 4, 0]  # the summary's counts, once there
+    assert table["dropped_agent"] == ["-", "-", "2 (stale: 2)", "-"]
+    table = agent_table(meta, history, 2, steps[1], {"3": False}, {"rejected": {"1": 9}}, None)
+    assert table["state"] == ["ok", "late", "lost", "ok"] and table["alive"] == ["yes", "yes", "no", "yes"]
+    assert table["dropped_plant"] == [9, 0, 0, 0]
+    nodes, edges = graph_tables(meta, table["state"])
+    assert nodes["name"] == ["plant", "1", "2", "3", "4"]
+    states = dict(zip(edges["link"], edges["state"]))
+    assert states["1 – 2 (plans)"] == "late" and states["2 – 3 (plans)"] == "down" and states["plant – 4 (release/plan)"] == "up"
+    assert link_state("ok", "waiting") == "idle"
+
+
+def test_summary_shows_the_verdict_and_its_reasons():
+    summary = {"verdict": "failed", "failures": [{"kind": "incomplete", "message": "3 of 30 steps"}],
+               "warnings": [{"kind": "fallbacks", "message": "2 fallback(s)"}], "steps": 3, "J": [5.0, 2.0, None],
+               "fallbacks_per_agent": {"1": 2}, "closed_loop_cost": 12.5}
+    text = summary_html(summary, "run folder")
+    assert "failed" in text and "incomplete: 3 of 30 steps" in text and "fallbacks: 2 fallback(s)" in text
+    assert ">2<" in text and "1: 2" in text and "12.5" in text
+    assert verdict_of({"aborted": "interrupted"}) == "aborted" and verdict_of({}) == "finished"
+
+
+def test_page_follows_the_run_and_replays_any_step(recorded):
+    """One document as a browser tab gets it: it follows the steps as they come, and the slider
+    shows the run up to the chosen step, with the numbers of trajectory.npz."""
+    from bokeh.document import Document
+
+    from dmpc.watch.page import WatchPage
+
+    folder, _ = recorded
+    npz = np.load(folder / "trajectory.npz")
+    state = fed(folder, 12)
+    page = WatchPage(Document(), state, live=True)
+    states = page.doc.get_model_by_name("states-2")
+    assert page.slider.value == 12 and page.slider.end == 12 and states.data["k"][-1] == 12
+    for line in lines(folder)[12:]:
+        state.add_step(line)
+    page.tick()
+    assert page.slider.value == 30 and page.follow
+    np.testing.assert_array_equal(np.column_stack([states.data["x1"], states.data["x2"]]), npz["x"][:, 2:4])
+    page.slider.value = 7
+    assert not page.follow
+    inputs = page.doc.get_model_by_name("inputs-3")
+    cost = page.doc.get_model_by_name("cost")
+    terminal = page.doc.get_model_by_name("terminal")
+    np.testing.assert_array_equal(states.data["x1"], npz["x"][:8, 2])
+    np.testing.assert_array_equal(inputs.data["u1"], npz["u"][:8, 2])
+    np.testing.assert_array_equal(cost.data["J"], npz["J"][:8])
+    np.testing.assert_array_equal(terminal.data["beta"], npz["beta"][:8])
+    assert "dmpc-readout-k'>7<" in page.readout.text and f"{npz['J'][7]:.6g}" in page.readout.text
+    page.slider.value = 30
+    assert page.follow and len(cost.data["J"]) == 30 and "verdict" in page.summary.text
+
+
+def test_a_page_that_gets_the_description_after_some_steps_counts_them_too(recorded):
+    from bokeh.document import Document
+
+    from dmpc.watch.page import WatchPage
+
+    folder, _ = recorded
+    state = RunState("bus")
+    page = WatchPage(Document(), state, live=True)
+    for line in lines(folder):
+        if line["k"] in (3, 5):  # agent 2 missed these
+            line["fallback"][1], line["fallback_reason"][1], line["status"][1] = True, "missed", "missed"
+        state.add_step(line)
+    page.tick()
+    assert not page.built and "waiting for the run's description" in page.counter.text
+    state.set_meta(folder_meta(folder))
+    page.tick()
+    assert page.table["fallbacks"] == [0, 2, 0, 0] and "dmpc-step'>30<" in page.counter.text
+    page.slider.value = 5
+    assert page.table["fallbacks"] == [0, 2, 0, 0] and page.table["state"] == ["ok", "late", "ok", "ok"]
+    page.slider.value = 4
+    assert page.table["fallbacks"] == [0, 1, 0, 0] and page.table["state"] == ["ok"] * 4
+
+
+# --------------------------------------------------------------------------------- access control
+def test_the_observer_role_may_subscribe_and_nothing_else(prepared):
+    from dmpc.bus import keys
+    from dmpc.security.acl import scenario_access_control
+    from tests.test_security import allowed
+
+    acl = scenario_access_control(prepared.system, "r")
+    can = lambda flow, message, key: allowed(acl, "observer", flow, message, key)  # noqa: E731
+    telemetry = keys.telemetry("r", "step")
+    assert can("ingress", "declare_subscriber", telemetry)
+    assert can("ingress", "declare_liveliness_subscriber", keys.alive("r", "agent-1"))
+    assert can("egress", "put", telemetry)
+    protocol = [keys.plan("r", "1"), keys.release("r"), keys.ready("r", "1"), keys.control("r")]
+    for key in protocol + [telemetry]:
+        assert not can("ingress", "put", key), key
+        assert not can("ingress", "delete", key), key
+    for key in protocol:
+        assert not can("ingress", "declare_subscriber", key) and not can("egress", "put", key), key
+    assert not can("ingress", "liveliness_token", keys.alive("r", "observer"))
+    assert not can("ingress", "declare_subscriber", keys.telemetry("other", "step"))
+    assert allowed(acl, "plant", "ingress", "put", telemetry)
+    assert not allowed(acl, "agent-1", "ingress", "put", telemetry)
+
+
+# ----------------------------------------------------------------------------------- the command line
+def test_watch_needs_a_folder_or_a_live_run(monkeypatch, capsys, tmp_path):
+    code, _, err = call(monkeypatch, capsys, "watch")
+    assert code == 2 and "--connect" in one_error_line(err)
+    code, _, err = call(monkeypatch, capsys, "watch", "--connect", "tcp/127.0.0.1:7447")
+    assert code == 2 and "--run-id" in one_error_line(err)
+    code, _, err = call(monkeypatch, capsys, "watch", str(tmp_path))
+    assert code == 2 and "not a run folder" in one_error_line(err)
+    code, _, err = call(monkeypatch, capsys, "watch", "--connect", "tcp/nowhere", "--run-id", "r")
+    assert code == 2 and "bad Zenoh endpoint" in one_error_line(err)
+
+
+def test_watch_serves_the_page_and_bokehjs_on_loopback_and_stops_on_ctrl_c(recorded):
+    """The page and BokehJS come from this process (no internet), on 127.0.0.1 only; Ctrl-C
+    stops the server and the process exits 0."""
+    import psutil
+
+    folder, _ = recorded
+    proc = subprocess.Popen(DMPC + ["watch", str(folder)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("live view: http://127.0.0.1:"), line + proc.stdout.read()
+        url = line.split()[2]
+        page = urllib.request.urlopen(url, timeout=10).read().decode()
+        script = next(part.split('"')[0] for part in page.split('src="') if part.startswith("/static/js/bokeh.min.js"))
+        assert "Bokeh" in urllib.request.urlopen(url.rstrip("/") + script, timeout=10).read(200_000).decode()
+        port = int(url.rstrip("/").rsplit(":", 1)[1])
+        listening = [c.laddr for c in psutil.Process(proc.pid).net_connections("tcp") if c.status == "LISTEN"]
+        assert [a.ip for a in listening if a.port == port] == ["127.0.0.1"], listening
+        with socket.socket() as other:  # the page is not reachable on another address of this host
+            other.settimeout(1)
+            hosts = {a.address for addrs in psutil.net_if_addrs().values() for a in addrs
+                     if a.family == socket.AF_INET and not a.address.startswith("127.")}
+            for host in hosts:
+                assert other.connect_ex((host, port)) != 0
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,0 +1,163 @@
+"""The live view in a real browser (headless Chromium): a live ``dmpc run --watch`` and the replay
+of a finished run folder.
+
+Chromium and its driver come from Debian (``apt-get install chromium chromium-driver``; .ci/run
+installs them). Without them these tests are skipped, except in CI, where they fail.
+With ``DMPC_WATCH_SCREENSHOTS=DIR`` the tests save what the browser showed into DIR
+(docs/figures/watch-live.png, watch-end.png and watch-replay.png were made so).
+"""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import re
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.e2e_helpers import DMPC, ROOT
+from tests.helpers.browser import chromium, class_text, class_texts, model, require_chromium, wait_until
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+
+def start(*args: str) -> subprocess.Popen:
+    return subprocess.Popen(DMPC + list(args), cwd=ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+
+
+class Lines:
+    """The lines a process prints, read on a thread (so a test can wait for one with a timeout)."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: queue.Queue = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=lambda: [self.lines.put(line) for line in proc.stdout], daemon=True).start()
+
+    def wait_for(self, pattern: str, timeout: float) -> re.Match:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            self.seen.append(line)
+            found = re.search(pattern, line)
+            if found:
+                return found
+        pytest.fail(f"no line matching {pattern!r} within {timeout} s; output:\n{''.join(self.seen)}")
+
+
+def screenshot(driver, name: str) -> None:
+    folder = os.environ.get("DMPC_WATCH_SCREENSHOTS")
+    if folder:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(Path(folder) / name))
+
+
+def test_live_view_follows_a_run_and_ends_with_its_summary(tmp_path):
+    """``dmpc run --watch`` on the paper's example, 40 steps in real time (0.25 s a step, 5 % of
+    the messages lost, so that some plans miss their deadline): the page's step counter advances
+    while the run goes, and at the end the page shows summary.json's final cost, verdict and
+    fallbacks per agent; its agent table, counted from the steps the page received over the
+    bus, has the same fallbacks. Ctrl-C then stops the page and the command."""
+    require_chromium()
+    out = tmp_path / "run"
+    with chromium() as driver:  # first: the browser takes seconds to start on a small machine
+        proc = start("run", "scenarios/paper.yaml", "--watch", "--out", str(out), "--quiet", "--steps", "40",
+                     "--set", "options.mode=realtime", "--set", "options.dt=0.25", "--loss", "0.05", "--seed", "3")
+        try:
+            lines = Lines(proc)
+            url = lines.wait_for(r"live view: (http://127\.0\.0\.1:\d+/)$", 60).group(1)
+            driver.get(url)
+            running: list[int] = []
+            seen = []
+            deadline = time.monotonic() + 90
+            while time.monotonic() < deadline:
+                count, state = class_text(driver, "dmpc-step"), class_text(driver, "dmpc-run-state")
+                seen.append((count, state))
+                if state == "running" and (not running or int(count) != running[-1]):
+                    running.append(int(count))
+                    if running[-1] >= 20 and len(running) > 1 and running[-2] < 20:
+                        screenshot(driver, "watch-live.png")
+                if state and state.startswith("ended"):
+                    break
+                time.sleep(0.3)
+            assert len(running) >= 2 and running == sorted(running) and running[0] < 40, (running, seen[-20:])
+            lines.wait_for(r"stays up; Ctrl-C to stop", 30)  # the run is over and its summary complete
+            summary = json.loads((out / "summary.json").read_text())
+            per_agent = summary["fallbacks_per_agent"]
+            assert sum(per_agent.values()) > 0, "no fallback: the comparison below would show little"
+            wait_until(lambda: "summary from the run folder" in (model(driver, "summary", "m.text") or ""), 10,
+                       what="summary.json on the page")  # with the agents' reports, which the bus's lacks
+            expected_J = f"{summary['J'][-1]:.6g}"
+            wait_until(lambda: class_text(driver, "dmpc-final-J") == expected_J, 10,
+                       what=f"final J {expected_J} on the page")
+            assert class_text(driver, "dmpc-step") == str(summary["steps"])
+            assert class_text(driver, "dmpc-cost") == f"{summary['closed_loop_cost']:.6g}"
+            assert class_text(driver, "dmpc-verdict") == summary.get("verdict", "finished")
+            assert class_text(driver, "dmpc-fallbacks-per-agent") == ", ".join(f"{a}: {n}" for a, n in per_agent.items())
+            assert class_texts(driver, "dmpc-agent") == list(per_agent)
+            assert class_texts(driver, "dmpc-fallbacks") == [str(n) for n in per_agent.values()]
+            screenshot(driver, "watch-end.png")
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(timeout=20) == 0
+        finally:
+            stop(proc)
+    assert "exited with code" not in "".join(lines.seen)
+
+
+def test_replay_shows_the_numbers_of_trajectory_npz_at_a_chosen_step(paper_simulated):
+    """``dmpc watch RUN_FOLDER``: moving the slider (with the keyboard, as a person would) to a
+    step shows the run up to that step; the plots' data and the readout are trajectory.npz's.
+    The replay button plays the run on from there."""
+    require_chromium()
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    npz = np.load(paper_simulated / "trajectory.npz")
+    with chromium() as driver:
+        proc = start("watch", str(paper_simulated))
+        try:
+            url = Lines(proc).wait_for(r"live view: (http://127\.0\.0\.1:\d+/)", 60).group(1)
+            driver.get(url)
+            wait_until(lambda: model(driver, "step-slider", "m.value") == 30, 30, what="the slider at the end")
+            handle = driver.execute_script(
+                "function find(n) { if (n.classList && n.classList.contains('noUi-handle')) return n;"
+                " for (const c of [...(n.shadowRoot ? n.shadowRoot.childNodes : []), ...n.childNodes]) {"
+                " const h = find(c); if (h) return h; } return null; } return find(document.body);")
+            driver.execute_script("arguments[0].focus()", handle)
+            ActionChains(driver).send_keys(Keys.ARROW_LEFT * 18).perform()
+            k = 12
+            wait_until(lambda: class_text(driver, "dmpc-readout-k") == str(k), 20, what=f"the readout at k = {k}")
+            screenshot(driver, "watch-replay.png")
+            for i, name in enumerate(["1", "2", "3", "4"]):
+                states = model(driver, f"states-{name}", "[m.data.k, m.data.x1, m.data.x2].map(a => Array.from(a))")
+                inputs = model(driver, f"inputs-{name}", "[m.data.k, m.data.u1].map(a => Array.from(a))")
+                assert list(states[0]) == list(range(k + 1)) and list(inputs[0]) == list(range(k + 1))
+                np.testing.assert_array_equal(np.column_stack(states[1:]), npz["x"][:k + 1, 2 * i:2 * i + 2])
+                np.testing.assert_array_equal(inputs[1], npz["u"][:k + 1, i])
+                shown = class_texts(driver, "dmpc-x")[i]
+                assert shown == ", ".join(f"{v:.6g}" for v in npz["x"][k, 2 * i:2 * i + 2])
+            np.testing.assert_array_equal(model(driver, "cost", "Array.from(m.data.J)"), npz["J"][:k + 1])
+            np.testing.assert_array_equal(model(driver, "terminal", "Array.from(m.data.beta)"), npz["beta"][:k + 1])
+            assert class_text(driver, "dmpc-J") == f"{npz['J'][k]:.6g}"
+            assert class_text(driver, "dmpc-beta") == f"{npz['beta'][k]:.6g}"
+            driver.execute_script("Bokeh.documents[0].get_model_by_name('play').active = true")
+            wait_until(lambda: model(driver, "step-slider", "m.value") >= k + 5, 20, what="the replay advancing")
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(timeout=10) == 0
+        finally:
+            stop(proc)
