@@ -175,18 +175,9 @@ def _load_arrays(path: Path, notes: list[str] | None = None) -> dict[str, np.nda
 
 def _box_hull(H: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-coordinate bounds of the polytope {v : H v <= h} (inf where unbounded)."""
-    from scipy.optimize import linprog
+    from dmpc.system import box_hull
 
-    dim = H.shape[1]
-    lower, upper = np.full(dim, -np.inf), np.full(dim, np.inf)
-    for j in range(dim):
-        for sign, target in ((1.0, lower), (-1.0, upper)):
-            c = np.zeros(dim)
-            c[j] = sign
-            res = linprog(c, A_ub=H, b_ub=h, bounds=[(None, None)] * dim, method="highs")
-            if res.status == 0:
-                target[j] = sign * res.fun
-    return lower, upper
+    return box_hull(H, np.full(h.shape, -np.inf), h)
 
 
 def _input_bounds(spec) -> tuple[np.ndarray, np.ndarray]:

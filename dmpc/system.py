@@ -243,6 +243,11 @@ class CoupledSystem:
     def split_input(self, u: np.ndarray) -> list[np.ndarray]:
         return [u[self.us(i)] for i in range(self.M)]
 
+    def spread(self, x: np.ndarray) -> float:
+        """S(x) = sum_i ||x_i||^2 / |N_i| (|N_i| counts i itself) for the global state x (n,)."""
+        parts = self.split_state(x)
+        return float(sum(parts[i] @ parts[i] / len(self.neighbours[i]) for i in range(self.M)))
+
 
 
 
@@ -270,3 +275,34 @@ def project_onto(linear_set: LinearSet, u: np.ndarray) -> np.ndarray:
                  l=linear_set.lower, u=linear_set.upper, verbose=False, polishing=False,
                  eps_abs=1e-10, eps_rel=1e-10, max_iter=100000)
     return np.asarray(solver.solve().x, float)
+
+
+def box_hull(H: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-coordinate bounds of ``{v : lower <= H v <= upper}`` (infinite where unbounded), by LPs.
+
+    Parameters
+    ----------
+    H : ndarray, shape (r, d)
+    lower, upper : ndarray, shape (r,)
+        Entries may be infinite.
+
+    Returns
+    -------
+    lo, hi : ndarray, shape (d,)
+    """
+    from scipy.optimize import linprog
+
+    finite_up, finite_lo = np.isfinite(upper), np.isfinite(lower)
+    A = np.vstack([H[finite_up], -H[finite_lo]])
+    b = np.concatenate([upper[finite_up], -lower[finite_lo]])
+    dim = H.shape[1]
+    lo, hi = np.full(dim, -np.inf), np.full(dim, np.inf)
+    for j in range(dim):
+        for sign, target in ((1.0, lo), (-1.0, hi)):
+            c = np.zeros(dim)
+            c[j] = sign
+            res = linprog(c, A_ub=A if A.size else None, b_ub=b if A.size else None,
+                          bounds=[(None, None)] * dim, method="highs")
+            if res.status == 0:
+                target[j] = sign * res.fun
+    return lo, hi

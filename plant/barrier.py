@@ -430,7 +430,7 @@ class Coordinator:
         eta = np.concatenate(eta_parts)
         nxt = self.policy.update(self.terminal, eta)
         note = "; ".join(t for t in (self._note, nxt.note) if t)
-        S = float(sum(x_parts[i] @ x_parts[i] / len(system.neighbours[i]) for i in range(M)))
+        S = system.spread(x)
         x_next = self.plant.step(u)
         record = StepRecord(
             k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta, x_next=x_next.copy(),

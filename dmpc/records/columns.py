@@ -43,12 +43,6 @@ class Column:
         return int(np.prod(self.shape, dtype=int))
 
 
-def state_spread(system: CoupledSystem, x: np.ndarray) -> float:
-    """S(x) = sum_i ||x_i||^2 / |N_i| for the global state x (n,)."""
-    parts = system.split_state(x)
-    return float(sum(parts[i] @ parts[i] / len(system.neighbours[i]) for i in range(system.M)))
-
-
 @dataclass
 class StepTally:
     """What the summary needs beyond the arrays, kept small whatever the run's length.
@@ -187,7 +181,7 @@ class StepColumns:
         if self.tally.steps == 0:
             empty = np.zeros((0, M))
             return {"x": system.x0[None, :], "u": np.zeros((0, system.m)), "alpha": np.zeros((1, system.n)),
-                    "beta": np.zeros(1), "J": np.zeros(0), "S": np.array([state_spread(system, system.x0)]),
+                    "beta": np.zeros(1), "J": np.zeros(0), "S": np.array([system.spread(system.x0)]),
                     "J_agents": empty, "solve_time": empty, "qp_iterations": empty.astype(int),
                     "fallback": empty.astype(bool), "latency": empty, "rounds": np.zeros(0, int),
                     "step_time": np.zeros(0), "max_change": np.zeros(0), "fallback_code": empty.astype(int)}
@@ -195,7 +189,7 @@ class StepColumns:
         K = rows.shape[0]
         last = self.last
         final = {"x": last.x_next, "alpha": last.alpha_next, "beta": last.beta_next,
-                 "S": state_spread(system, last.x_next), "r": last.r_next}
+                 "S": system.spread(last.x_next), "r": last.r_next}
         out = {}
         for key, col in self.layout.items():
             block = rows[:, col.start:col.start + col.size].reshape((K,) + col.shape)

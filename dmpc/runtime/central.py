@@ -88,8 +88,7 @@ class CentralLoop:
         P = self.design.gains.P
         J_agents = [plan_cost(z[:, system.xs(i)], v[:, system.us(i)], s.Q, s.R, P[i])
                     for i, s in enumerate(system.subsystems)]
-        parts = system.split_state(x)
-        S = float(sum(parts[i] @ parts[i] / len(system.neighbours[i]) for i in range(M)))
+        S = system.spread(x)
         x_next = plant.step(u)
         zeros = np.zeros(system.n)
         record = StepRecord(

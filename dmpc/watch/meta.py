@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dmpc.system import box_hull
+
 META_VERSION = 1
 
 
@@ -227,23 +229,3 @@ def _bounds(linear_set: dict | None, dim: int) -> tuple[tuple[float, ...], tuple
         lo, hi, is_box = *box_hull(H, lower, upper), False
     return (tuple(float(v) if np.isfinite(v) else math.nan for v in lo),
             tuple(float(v) if np.isfinite(v) else math.nan for v in hi), is_box)
-
-
-def box_hull(H: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-coordinate bounds of ``{v : lower <= H v <= upper}`` (inf where unbounded)."""
-    from scipy.optimize import linprog
-
-    finite_up, finite_lo = np.isfinite(upper), np.isfinite(lower)
-    A = np.vstack([H[finite_up], -H[finite_lo]])
-    b = np.concatenate([upper[finite_up], -lower[finite_lo]])
-    dim = H.shape[1]
-    lo, hi = np.full(dim, -np.inf), np.full(dim, np.inf)
-    for j in range(dim):
-        for sign, target in ((1.0, lo), (-1.0, hi)):
-            c = np.zeros(dim)
-            c[j] = sign
-            res = linprog(c, A_ub=A if A.size else None, b_ub=b if A.size else None,
-                          bounds=[(None, None)] * dim, method="highs")
-            if res.status == 0:
-                target[j] = sign * res.fun
-    return lo, hi
