@@ -1,12 +1,17 @@
-"""The computing part of agent i: assumed trajectories -> coupling feed-forward -> QP_i.
+"""The computing part of agent i: assumed trajectories -> coupling feed-forward -> QP_i, and
+the plan that answers a release (:meth:`AgentController.answer`, the one path from a release
+to a plan message for the agent node and the direct loop).
 
-Pure: no bus, no clock other than the solver's own timing.
+Pure: no bus; no clock other than the solver's own timing and the caller's, if it gives one.
 """
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
 from dmpc.agents.local_qp import LocalQP, QPSolution
+from dmpc.bus.messages import PlanMessage, Release
 from dmpc.design import Design
 from dmpc.methods import terminal_policy
 from dmpc.system import CoupledSystem
@@ -34,6 +39,9 @@ class AgentController:
         self.index = index
         self.system = system
         sub = system.subsystems[index]
+        self.name = sub.name
+        self._own = system.xs(index)
+        self._state_slices = {j: system.xs(j) for j in system.neighbours[index]}  # i and its neighbours
         self.N = design.horizon
         self.n = sub.n
         self.neighbours = tuple(j for j in system.neighbours[index] if j != index)
@@ -56,7 +64,7 @@ class AgentController:
                    for j in self.neighbours]
         return coupling_feedforward(self._A, self._B, assumed, self.N, self.n)
 
-    def solve(self, k: int, states: dict[int, np.ndarray], alpha: np.ndarray, beta: float,
+    def solve(self, k: int, states: dict[int, np.ndarray], centre: np.ndarray, size: float,
               plans: dict[int, Plan | None]) -> QPSolution:
         """Solve QP_i at step k.
 
@@ -65,11 +73,35 @@ class AgentController:
         k : int
         states : dict j -> ndarray (n_j,)
             Measured states of i and its neighbours.
-        alpha : ndarray, shape (n_i,)
-        beta : float
-            The released terminal centre and size (box radius, or ellipsoid level).
+        centre : ndarray, shape (n_i,)
+            The released terminal centre (alpha_i for the box methods, zeros for the ellipsoids).
+        size : float
+            The released terminal size (the box radius beta, or the ellipsoid level r_i).
         plans : dict j -> Plan or None
             The neighbours' plans to build the assumed trajectories from (None: K-rollout).
         """
         c = self.feedforward(k, states, plans)
-        return self.qp.solve(states[self.index], c, alpha, beta)
+        return self.qp.solve(states[self.index], c, centre, size)
+
+    def answer(self, release: Release, plans: dict[int, Plan | None], run_id: str,
+               clock: Callable[[], float] | None = None) -> PlanMessage:
+        """Solve QP_i for ``release`` and return the plan message that answers it.
+
+        Parameters
+        ----------
+        release : Release
+            Gives the step and round, the measured state x (n,) (this agent's and its
+            neighbours' parts are used), and this agent's terminal centre and size.
+        plans : dict j -> Plan or None
+            The neighbours' plans the release refers to (None: K-rollout).
+        run_id : str
+        clock : callable () -> float, optional
+            The sender's clock, read once the plan is solved: the message's ``sent_at``
+            (the records' latency); 0 without one.
+        """
+        x = release.x
+        states = {j: x[part] for j, part in self._state_slices.items()}
+        sol = self.solve(release.k, states, release.centres[self._own], float(release.sizes[self.index]), plans)
+        return PlanMessage(run=run_id, k=release.k, iteration=release.iteration, sender=self.name,
+                           status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
+                           qp_iterations=int(sol.iterations), sent_at=clock() if clock is not None else 0.0)

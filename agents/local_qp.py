@@ -49,7 +49,7 @@ class LocalQP:
         self.terminal = terminal if terminal is not None else BoxTerminal(sub.n, tightening.terminal_margin)
         self._qp = MpcQP(sub.A, sub.B, sub.Q, sub.R, P_terminal, horizon, inputs, states, self.terminal.T, settings)
 
-    def solve(self, x: np.ndarray, coupling: np.ndarray, alpha: np.ndarray, beta: float) -> QPSolution:
+    def solve(self, x: np.ndarray, coupling: np.ndarray, centre: np.ndarray, size: float) -> QPSolution:
         """Solve QP_i for one step.
 
         Parameters
@@ -58,12 +58,12 @@ class LocalQP:
             Measured state x_i(k).
         coupling : ndarray, shape (N, n)
             Feed-forward c_i(t), t = 0..N-1 (zeros for the decoupled nominal model).
-        alpha : ndarray, shape (n,)
-            Centre of the terminal box (the released centre).
-        beta : float
-            Radius of the terminal box (the released size: the level r_i for an ellipsoid).
+        centre : ndarray, shape (n,)
+            The released terminal centre (of the box; unused by an ellipsoid, centred at zero).
+        size : float
+            The released terminal size: the box radius beta, or the ellipsoid level r_i.
         """
-        lower, upper = self.terminal.bounds(alpha, beta)
+        lower, upper = self.terminal.bounds(centre, size)
         return self._qp.solve(x, coupling, lower, upper)
 
     def cost(self, z: np.ndarray, v: np.ndarray) -> float:

@@ -10,21 +10,23 @@ from __future__ import annotations
 import logging
 import os
 from collections import OrderedDict
+from collections.abc import Callable
 
 import numpy as np
 
 from dmpc.agents.controller import AgentController
 from dmpc.bus import keys
-from dmpc.bus.codec import MAX_NAME, DecodeError, decode, encode
+from dmpc.bus.codec import MAX_NAME, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus, Timer
-from dmpc.bus.messages import PLANT, PlanMessage, Ready, Release, Stop, design_claim
+from dmpc.bus.messages import COORDINATOR, PlanMessage, Ready, Release, Stop, design_claim
+from dmpc.qp_status import SOLVED
 from dmpc.security.rejects import Rejections, out_of_range
 from dmpc.trajectories import Plan
 
 log = logging.getLogger("dmpc.agent")
 KEEP_PLANS = 8
 # A release may skip ahead of the last one (releases lost on the way, a deadline passed) by at
-# most this many steps or rounds; beyond it the message cannot come from this run's plant.
+# most this many steps or rounds; beyond it the message cannot come from this run's coordinator.
 RELEASE_WINDOW = 1000
 
 
@@ -39,18 +41,23 @@ class AgentNode:
         Subsystem names in index order.
     run_id : str
     design_digest : str
-        Sent in ``Ready`` so the plant can check both sides use the same design.
+        Sent in ``Ready`` so the coordinator can check both sides use the same design.
     plan_wait : float or None
         How long to wait for a neighbour's referenced plan before using the newest older one;
         None waits as long as it takes (lockstep without losses).
     scenario : str
-        The scenario's name, sent in ``Ready`` with the horizon so that the plant can say how
+        The scenario's name, sent in ``Ready`` with the horizon so that the coordinator can say how
         a differing design differs.
+    on_change : callable () -> None, optional
+        Called on the bus's thread when ``released``, ``stopped`` or ``coordinator_lost`` changes
+        (a process serving several agents waits for that).
     """
 
     def __init__(self, bus: Bus, controller: AgentController, names: list[str], run_id: str,
-                 design_digest: str, plan_wait: float | None = None, scenario: str = "") -> None:
+                 design_digest: str, plan_wait: float | None = None, scenario: str = "",
+                 on_change: Callable[[], None] | None = None) -> None:
         self.bus = bus
+        self._on_change = on_change or _unchanged
         self.controller = controller
         self.names = names
         self.run_id = run_id
@@ -61,10 +68,8 @@ class AgentNode:
         self.name = names[i]
         self.system = controller.system
         self.neighbour_names = {names[j]: j for j in controller.neighbours}
-        self.group = {names[j]: j for j in self.system.neighbours[i]}
+        self._watched = {keys.COORDINATOR_ROLE} | {keys.agent_role(n) for n in self.neighbour_names}
         self._known = frozenset(names)
-        self._own = self.system.xs(i)
-        self._state_slices = {j: self.system.xs(j) for j in self.group.values()}
         N = controller.N
         self._plan_shapes = {name: ((N + 1, self.system.subsystems[j].n), (N, self.system.subsystems[j].m))
                              for name, j in self.neighbour_names.items()}
@@ -74,18 +79,20 @@ class AgentNode:
         self._last_done: tuple[int, int] = (-1, -1)
         self.stopped = False
         self.stop_reason = ""
-        self.rejects = Rejections(log, f"agent {self.name}", bus.now, [PLANT, *self.neighbour_names])
+        self.coordinator_version: VersionMismatch | None = None  # set if the coordinator speaks another protocol
+        self.rejects = Rejections(log, f"agent {self.name}", bus.now, [COORDINATOR, *self.neighbour_names])
         self.rejected: dict[str, int] = self.rejects.counts
         self.duplicates = 0
         self._latest: tuple[int, int] | None = None  # newest release accepted
         self.solves = 0
         self.stale_assumptions = 0
         self.peers_alive: set[str] = set()
-        self.plant_seen = False
-        self.plant_lost = False
+        self.coordinator_seen = False
+        self.coordinator_lost = False
         self.rejoins = 0
         self.ready_sent = 0
         self._released = False
+        self.released_at: float | None = None  # bus time of the first release
         self._first_k: int | None = None
         self._ready_timer: Timer | None = None
         self._repeat = 0.5
@@ -95,12 +102,12 @@ class AgentNode:
         bus.subscribe(keys.control(run_id), self._on_control)
 
     def announce(self, repeat: float = 0.5) -> None:
-        """Hold a liveliness token and tell the plant this agent is ready.
+        """Hold a liveliness token and tell the coordinator this agent is ready.
 
         The token is declared after every subscriber (declarations travel in order, so whoever
-        sees the token can reach the subscribers). ``Ready`` goes out once the plant and every
+        sees the token can reach the subscribers). ``Ready`` goes out once the coordinator and every
         neighbour are alive, and again every ``repeat`` seconds until the first release comes,
-        in case the plant subscribed after the first one.
+        in case the coordinator subscribed after the first one.
         """
         self.bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
         self.bus.declare_alive(keys.alive(self.run_id, keys.agent_role(self.name)))
@@ -108,37 +115,39 @@ class AgentNode:
 
     def _on_alive(self, key: str, alive: bool) -> None:
         role = keys.last_chunk(key)
-        if role != "plant" and role not in {keys.agent_role(n) for n in self.neighbour_names}:
-            return  # only the plant and the neighbours matter (and the set stays bounded)
+        if role not in self._watched:
+            return  # only the coordinator and the neighbours matter (and the set stays bounded)
         if alive:
             self.peers_alive.add(role)
-            if role == "plant":
-                self.plant_seen = True
-                if self.plant_lost and not self.stopped:
+            if role == keys.COORDINATOR_ROLE:
+                self.coordinator_seen = True
+                if self.coordinator_lost and not self.stopped:
                     self._rejoin()
             self._maybe_ready()
         else:
             self.peers_alive.discard(role)
-            if role == "plant" and self.plant_seen and not self.stopped:
-                self.plant_lost = True
+            if role == keys.COORDINATOR_ROLE and self.coordinator_seen and not self.stopped:
+                self.coordinator_lost = True
+                self._on_change()
 
     def _rejoin(self) -> None:
-        """The plant is back after a loss (this process hung past the lease, or the link broke).
+        """The coordinator is back after a loss (this process hung past the lease, or the link broke).
 
-        The plant has declared this agent lost and releases nothing to it until it is ready
+        The coordinator has declared this agent lost and releases nothing to it until it is ready
         again, so start over as at start-up: send ``Ready`` (repeated until a release comes) and
         treat the next release as the first (plans published meanwhile can never arrive).
         """
-        log.warning("agent %s: the plant is back; rejoining", self.name)
-        self.plant_lost = False
+        log.warning("agent %s: the coordinator is back; rejoining", self.name)
+        self.coordinator_lost = False
         self._released = False
         self._latest = None
         self.rejoins += 1
+        self._on_change()
 
     def _maybe_ready(self) -> None:
         if self._released or self._ready_timer is not None:
             return
-        needed = {"plant"} | {keys.agent_role(n) for n in self.neighbour_names}
+        needed = {keys.COORDINATOR_ROLE} | {keys.agent_role(n) for n in self.neighbour_names}
         if needed <= self.peers_alive:
             self._send_ready()
 
@@ -157,10 +166,12 @@ class AgentNode:
         self.rejects(sender, why)
 
     def _decode(self, key: str, payload: bytes, expected: type):
-        sender = keys.last_chunk(key) if expected is PlanMessage else PLANT
+        sender = keys.last_chunk(key) if expected is PlanMessage else COORDINATOR
         try:
             msg = decode(payload)
         except DecodeError as exc:
+            if isinstance(exc, VersionMismatch) and sender == COORDINATOR:
+                self.coordinator_version = exc  # its text names both versions
             self._reject(sender, str(exc))
             return None
         if not isinstance(msg, expected):
@@ -184,16 +195,17 @@ class AgentNode:
 
     def _on_control(self, key: str, payload: bytes) -> None:
         msg = self._decode(key, payload, Stop)
-        if msg is None or not self._checked(self._check_stop, msg, PLANT) or self.stopped:
+        if msg is None or not self._checked(self._check_stop, msg, COORDINATOR) or self.stopped:
             return
         self.stopped = True
         self.stop_reason = msg.reason
         if self._ready_timer is not None:
             self._ready_timer.cancel()
             self._ready_timer = None
+        self._on_change()
 
     def _check_stop(self, msg: Stop) -> str | None:
-        if msg.sender != PLANT:
+        if msg.sender != COORDINATOR:
             return "stop from another sender"
         if self._latest is not None and msg.k < self._latest[0]:
             return f"stale: stop at step {msg.k} after a release of step {self._latest[0]}"
@@ -201,8 +213,8 @@ class AgentNode:
 
     def _on_release(self, key: str, payload: bytes) -> None:
         msg = self._decode(key, payload, Release)
-        if msg is None or self.name in msg.skipped or not self._checked(self._check_release, msg, PLANT):
-            return  # a round that skips this agent is not for it: the plant counts it as lost
+        if msg is None or self.name in msg.skipped or not self._checked(self._check_release, msg, COORDINATOR):
+            return  # a round that skips this agent is not for it: the coordinator counts it as lost
         if (msg.k, msg.iteration) <= max(self._last_done, self._latest or self._last_done):
             self.duplicates += 1  # seen already, or older than one seen: a newer release supersedes it
             return
@@ -211,15 +223,18 @@ class AgentNode:
         if not self._released:
             self._released = True
             self._first_k = msg.k
+            if self.released_at is None:
+                self.released_at = self.bus.now()
             if self._ready_timer is not None:
                 self._ready_timer.cancel()
                 self._ready_timer = None
+            self._on_change()
         self.pending = msg
         self._cancel_wait()
         self._try_solve()
 
     def _check_release(self, msg: Release) -> str | None:
-        if msg.sender != PLANT:
+        if msg.sender != COORDINATOR:
             return "release from another sender"
         if self._latest is not None:
             k, it = self._latest
@@ -246,8 +261,8 @@ class AgentNode:
         name = keys.last_chunk(key)
         if msg is None or not self._checked(lambda m: self._check_plan(name, m), msg, name):
             return
-        if msg.status not in ("solved", "solved_inaccurate"):
-            return  # the plant falls back for it; nothing to assume from
+        if msg.status not in SOLVED:
+            return  # the coordinator falls back for it; nothing to assume from
         store = self.plans[name]
         if (msg.k, msg.iteration) in store:
             self.duplicates += 1  # the first copy stays
@@ -264,7 +279,7 @@ class AgentNode:
             return "sender does not match its key"
         if (msg.z.shape, msg.v.shape) != shapes:
             return "plan has the wrong shape"
-        if msg.status in ("solved", "solved_inaccurate") and out_of_range(msg.z, msg.v):
+        if msg.status in SOLVED and out_of_range(msg.z, msg.v):
             return "out of range: plan values beyond the magnitude limit"
         if self._latest is not None:
             k = self._latest[0]
@@ -277,7 +292,7 @@ class AgentNode:
     def _prune_plans(self) -> None:
         """Forget plans stored before the first release that lie beyond the window.
 
-        Old plans stay: the plant may keep referring to a lost neighbour's last plan.
+        Old plans stay: the coordinator may keep referring to a lost neighbour's last plan.
         """
         k = self._latest[0]
         for store in self.plans.values():
@@ -319,15 +334,9 @@ class AgentNode:
         self.pending = None
         self._cancel_wait()
         self.bus.expect(None)
-        x = release.x
-        states = {j: x[part] for j, part in self._state_slices.items()}
-        sol = self.controller.solve(release.k, states, release.centres[self._own], float(release.sizes[self.controller.index]),
-                                    plans)
+        msg = self.controller.answer(release, plans, self.run_id, clock=self.bus.now)
         self.solves += 1
         self._last_done = (release.k, release.iteration)
-        msg = PlanMessage(run=self.run_id, k=release.k, iteration=release.iteration, sender=self.name,
-                          status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
-                          qp_iterations=int(sol.iterations), sent_at=self.bus.now())
         self.bus.publish(keys.plan(self.run_id, self.name), encode(msg))
 
     def _arm_wait(self) -> None:
@@ -345,7 +354,7 @@ class AgentNode:
 
     @property
     def design_refused(self) -> bool:
-        """True if the plant stopped the run naming this agent's design as different from its own."""
+        """True if the coordinator stopped the run naming this agent's design as different from its own."""
         return self.stopped and design_claim(self.name, self.design_digest) in self.stop_reason
 
     @property
@@ -368,3 +377,7 @@ class AgentNode:
         """
         return {"rejected": dict(self.rejects.counts), "rejected_reasons": dict(self.rejects.reasons),
                 "duplicates": int(self.duplicates), "solves": int(self.solves)}
+
+
+def _unchanged() -> None:
+    pass

@@ -1,27 +1,36 @@
-"""``dmpc agent``: one subsystem's controller as its own process on the Zenoh bus."""
+"""``dmpc agent``: the controllers of one or more subsystems as one process on the Zenoh bus.
+
+Several agents hosted by one process share its Zenoh session and its thread, and each behaves as
+it does alone: its own subscriptions, liveliness token, ``Ready``, checks and report (see
+``ZenohBus(shared=True)``). The process ends when every agent it serves has ended; a process that
+dies is the loss of all its agents, which the coordinator sees as their liveliness going.
+"""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from dmpc.agents.controller import AgentController
 from dmpc.agents.node import AgentNode
+from dmpc.bus import keys
 from dmpc.bus.interface import Bus
 from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
-from dmpc.runtime.setup import Prepared
+from dmpc.records.agent_reports import FIRST_RELEASE
+from dmpc.run_spec import Prepared
 
 log = logging.getLogger("dmpc.agent")
 
-# After the plant's liveliness goes, wait this long for it to come back before exiting. A link
+# After the coordinator's liveliness goes, wait this long for it to come back before exiting. A link
 # that broke (or this process, hung past the lease and resumed) reconnects within it: at once,
-# or at Zenoh's first connect retry one second later. A crashed plant never comes back: its
+# or at Zenoh's first connect retry one second later. A crashed coordinator never comes back: its
 # liveliness goes at once (a hung one's after the lease), and the agents exit this long later.
-PLANT_GRACE = 1.5
+COORDINATOR_GRACE = 1.5
 
 
 @dataclass(frozen=True)
 class AgentOutcome:
-    """How an agent process ended.
+    """How an agent ended.
 
     Attributes
     ----------
@@ -30,7 +39,8 @@ class AgentOutcome:
     message : str
         One line for the terminal.
     report : dict
-        :meth:`AgentNode.report`: messages dropped per sender and reason, duplicates, solves.
+        :meth:`AgentNode.report` (messages dropped per sender and reason, duplicates, solves) and
+        ``FIRST_RELEASE``.
     """
 
     code: int
@@ -39,59 +49,149 @@ class AgentOutcome:
 
 
 def run_agent(prepared: Prepared, name: str, bus: Bus, run_id: str, startup_timeout: float) -> AgentOutcome:
-    """Serve agent ``name`` until the plant stops the run, the plant is lost for longer than
-    ``PLANT_GRACE``, or Ctrl-C. A plant that comes back within the grace is rejoined.
+    """Serve agent ``name`` alone: :func:`run_agents` with one name."""
+    return run_agents(prepared, [name], bus, run_id, startup_timeout)[0]
 
-    The outcome's message and report say how many invalid messages were dropped, per sender.
+
+def run_agents(prepared: Prepared, names: Sequence[str], bus: Bus, run_id: str, startup_timeout: float,
+               bus_for: Callable[[str], Bus] | None = None) -> list[AgentOutcome]:
+    """Serve the agents ``names`` until the coordinator stops the run, the coordinator is lost for
+    longer than ``COORDINATOR_GRACE``, or Ctrl-C. A coordinator that comes back within the grace is
+    rejoined.
+
+    Each outcome's message and report say how many invalid messages that agent dropped, per sender.
 
     Parameters
     ----------
     prepared : Prepared
-    name : str
-        The subsystem name (``--id``).
+    names : sequence of str
+        The subsystem names (``--id``), each once.
     bus : Bus
-        An open bus; closed by the caller.
+        An open bus (``ZenohBus(shared=True)`` for more than one name); closed by the caller.
     run_id : str
     startup_timeout : float
-        Seconds to wait for the plant's first release before giving up.
+        Seconds to wait for the coordinator's first release before giving up.
+    bus_for : callable str -> Bus, optional
+        The view of ``bus`` each agent uses (the fault injector's, with the agent as receiver);
+        ``bus`` itself by default.
+
+    Returns
+    -------
+    list of AgentOutcome
+        In the order of ``names``.
     """
-    index = prepared.names.index(name)
-    controller = AgentController(prepared.system, prepared.design, index,
-                                 coupling=prepared.coupling, method=prepared.method)
-    node = AgentNode(bus, controller, prepared.names, run_id, prepared.digest, plan_wait=prepared.plan_wait,
-                     scenario=prepared.name)
-    node.announce()
+    changes = Changes()
+    nodes = {}
+    for name in names:
+        controller = AgentController(prepared.system, prepared.design, prepared.names.index(name),
+                                     coupling=prepared.coupling, method=prepared.method)
+        nodes[name] = AgentNode(bus_for(name) if bus_for else bus, controller, prepared.names, run_id,
+                                prepared.digest, plan_wait=prepared.plan_wait, scenario=prepared.name,
+                                on_change=changes)
+    for node in nodes.values():
+        node.announce()
+    ends: dict[str, tuple[int, str]] = {}
     try:
-        code, message = _serve(node, bus, name, run_id, startup_timeout)
+        serve(nodes, bus, run_id, startup_timeout, changes, ends)
     except KeyboardInterrupt:
-        code, message = EXIT_INTERRUPTED, f"agent {name}: interrupted after {node.solves} solves"
-    if node.rejects.total:
-        message += f"; {node.rejects.counts_line()}"
-    if node.duplicates:
-        message += f"; {node.duplicates} duplicates ignored"
-    return AgentOutcome(code, message, node.report())
+        for name, node in nodes.items():
+            ends.setdefault(name, (EXIT_INTERRUPTED, f"agent {name}: interrupted after {node.solves} solves"))
+    outcomes = []
+    for name, node in nodes.items():
+        code, message = ends[name]
+        if node.rejects.total:
+            message += f"; {node.rejects.counts_line()}"
+        if node.duplicates:
+            message += f"; {node.duplicates} duplicates ignored"
+        outcomes.append(AgentOutcome(code, message, {**node.report(), FIRST_RELEASE: node.released_at}))
+    return outcomes
 
 
-def _serve(node: AgentNode, bus: Bus, name: str, run_id: str, startup_timeout: float) -> tuple[int, str]:
-    started = bus.run(until=lambda: node.released or node.stopped or node.plant_lost, timeout=startup_timeout)
-    if not started:
-        missing = sorted({"plant"} | {f"agent-{n}" for n in node.neighbour_names} - node.peers_alive)
-        return EXIT_FAILED, (f"agent {name}: no release from the plant within {startup_timeout:g} s "
-                             f"(not seen alive: {', '.join(missing) or 'none'}; run id '{run_id}')")
-    while not _run_until_plant_lost(node, bus):
-        log.warning("agent %s: lost the plant; waiting %g s for it to come back", name, PLANT_GRACE)
-        if not bus.run(until=lambda: node.stopped or not node.plant_lost, timeout=PLANT_GRACE):
-            return EXIT_FAILED, f"agent {name}: lost the plant after {node.solves} solves; exiting"
+def process_exit_code(outcomes: Sequence[AgentOutcome]) -> int:
+    """The exit code of a process serving these agents: the worst of theirs (the highest)."""
+    return max(o.code for o in outcomes)
+
+
+class Changes:
+    """The nodes' ``on_change``: set when one of them starts, stops or loses the coordinator."""
+
+    __slots__ = ("pending",)
+
+    def __init__(self) -> None:
+        self.pending = False
+
+    def __call__(self) -> None:
+        self.pending = True
+
+
+def serve(nodes: dict[str, AgentNode], bus: Bus, run_id: str, startup_timeout: float, changes: Changes,
+          ends: dict[str, tuple[int, str]]) -> None:
+    """Run the bus until every node has ended, filling ``ends`` with (exit code, message) per name.
+
+    The nodes must have been made with ``on_change=changes``: the bus runs until a node changes
+    or a deadline (start-up, a grace) comes, and only then are the nodes looked at, so the cost
+    per message does not grow with the number of nodes.
+    """
+    start_by = bus.now() + startup_timeout
+    grace_until: dict[str, float] = {}
+    started: set[str] = set()  # released, stopped or lost the coordinator once: past the start-up timeout
+    while len(ends) < len(nodes):
+        now = bus.now()
+        newly_lost = []
+        for name, node in nodes.items():
+            if name in ends:
+                continue
+            if node.released or node.stopped or node.coordinator_lost:
+                started.add(name)
+            if node.stopped:
+                ends[name] = _stopped(name, node)
+            elif node.coordinator_lost:
+                if name not in grace_until:
+                    grace_until[name] = now + COORDINATOR_GRACE
+                    newly_lost.append(name)
+                elif now >= grace_until[name]:
+                    ends[name] = EXIT_FAILED, f"agent {name}: lost the coordinator after {node.solves} solves; exiting"
+            else:
+                grace_until.pop(name, None)
+                if name not in started and now >= start_by:
+                    ends[name] = EXIT_FAILED, _no_release(name, node, startup_timeout, run_id)
+        if newly_lost:
+            log.warning("agent%s %s: lost the coordinator; waiting %g s for it to come back",
+                        "s" if len(newly_lost) > 1 else "", names_text(newly_lost), COORDINATOR_GRACE)
+        waiting = [name for name in nodes if name not in ends]
+        if not waiting:
+            return
+        deadlines = [grace_until[name] for name in waiting if name in grace_until]
+        if any(name not in started for name in waiting):
+            deadlines.append(start_by)
+        changes.pending = False
+        timeout = max(0.0, min(deadlines) - now) if deadlines else None
+        if not bus.run(until=lambda: changes.pending, timeout=timeout) and timeout is None:
+            for name in waiting:  # only an in-memory bus runs out of events
+                ends[name] = EXIT_FAILED, f"agent {name}: the bus has nothing more to deliver"
+
+
+def _stopped(name: str, node: AgentNode) -> tuple[int, str]:
     if node.design_refused:
-        return EXIT_FAILED, (f"agent {name}: its design differs from the plant's: this agent uses design "
+        return EXIT_FAILED, (f"agent {name}: its design differs from the coordinator's: this agent uses design "
                              f"{node.design_digest} (scenario '{node.scenario}', horizon {node.controller.N}); "
-                             f"the plant stopped the run ({node.stop_reason})")
+                             f"the coordinator stopped the run ({node.stop_reason})")
     if node.stop_reason.startswith("failed"):
-        return EXIT_FAILED, f"agent {name}: the plant stopped the run ({node.stop_reason})"
+        return EXIT_FAILED, f"agent {name}: the coordinator stopped the run ({node.stop_reason})"
     return EXIT_OK, f"agent {name}: {node.stop_reason} after {node.solves} solves"
 
 
-def _run_until_plant_lost(node: AgentNode, bus: Bus) -> bool:
-    """Serve releases until the run stops (True) or the plant's liveliness goes (False)."""
-    bus.run(until=lambda: node.stopped or node.plant_lost)
-    return node.stopped
+def _no_release(name: str, node: AgentNode, startup_timeout: float, run_id: str) -> str:
+    missing = sorted({keys.COORDINATOR_ROLE} | {keys.agent_role(n) for n in node.neighbour_names} - node.peers_alive)
+    version = f"; the coordinator speaks {node.coordinator_version}" if node.coordinator_version else ""
+    return (f"agent {name}: no release from the coordinator within {startup_timeout:g} s "
+            f"(not seen alive: {', '.join(missing) or 'none'}; run id '{run_id}'){version}")
+
+
+def names_text(names: Sequence[str], shown: int = 6) -> str:
+    """``1, 2, 3``, or the first and last few with the count when there are more than ``shown``."""
+    names = list(names)
+    if len(names) <= shown:
+        return ", ".join(names)
+    half = shown // 2
+    return f"{', '.join(names[:half])}, ..., {', '.join(names[-half:])} ({len(names)} agents)"

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from dmpc.records.files import PROCESSES, STEP_LOG, TRAJECTORY
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -64,7 +66,7 @@ def main() -> None:
         while proc.poll() is None:
             time.sleep(args.every)
             try:
-                pids = json.loads((out / "processes.json").read_text())
+                pids = json.loads((out / PROCESSES).read_text())
             except (FileNotFoundError, json.JSONDecodeError):
                 continue
             rss = {}
@@ -74,7 +76,7 @@ def main() -> None:
                 except psutil.Error:
                     pass
             launcher = psutil.Process(proc.pid).memory_info().rss / 2**20 if proc.poll() is None else None
-            samples.append({"t": time.monotonic() - started, "steps": steps_done(out / "steps.jsonl"), "rss_mb": rss,
+            samples.append({"t": time.monotonic() - started, "steps": steps_done(out / STEP_LOG), "rss_mb": rss,
                             "launcher_mb": launcher})
     finally:
         if proc.poll() is None:
@@ -89,7 +91,7 @@ def main() -> None:
         growth = {role: last["rss_mb"][role] - base["rss_mb"][role] for role in base["rss_mb"]
                   if role in last["rss_mb"]}
         result.update(base_sample=base, last_sample=last, growth_mb=growth)
-    trajectory = out / "trajectory.npz"
+    trajectory = out / TRAJECTORY
     if trajectory.exists():
         step_time = np.load(trajectory)["step_time"] * 1e3
         first, tail = step_time[:args.window], step_time[-args.window:]

@@ -1,4 +1,4 @@
-"""The one encode/decode pair of the wire format: msgpack maps with a schema version.
+"""The one encode/decode pair of the wire format: msgpack maps with a protocol version.
 
 Arrays travel as ``{"dtype": "<f8", "shape": [...], "data": bytes}`` (``"<i8"`` for integer
 arrays). ``decode`` checks everything that can be checked without knowing the scenario (types,
@@ -16,8 +16,9 @@ from dataclasses import fields
 import msgpack
 import numpy as np
 
-from dmpc.bus.messages import (MESSAGE_TYPES, SCHEMA_VERSION, TYPE_NAMES, Message, PlanMessage, Ready,
-                               Release, Stop)
+from dmpc.bus.messages import (MESSAGE_TYPES, PROTOCOL_VERSION, TYPE_NAMES, Inputs, Message, PlanMessage, Ready,
+                               Release, State, Stop)
+from dmpc.qp_status import SOLVED
 
 MAX_PAYLOAD = 1 << 20
 MAX_NAME = 64
@@ -25,8 +26,21 @@ MAX_ARRAY_ELEMENTS = 1 << 16
 MAX_REASON = 1000
 
 
+VERSION_FIELD = "protocol"
+OLD_VERSION_FIELD = "schema"  # what protocol versions 1 and 2 called it
+
+
 class DecodeError(ValueError):
     """A payload that is not a valid message; the text says what is wrong."""
+
+
+class VersionMismatch(DecodeError):
+    """A message of another protocol version; ``version`` is the one it carries (None if none)."""
+
+    def __init__(self, version: object) -> None:
+        self.version = version if type(version) is int else None
+        shown = "no protocol version" if self.version is None else f"protocol version {self.version}"
+        super().__init__(f"{shown}; this process speaks protocol version {PROTOCOL_VERSION}")
 
 
 _FIELDS: dict[type, tuple[str, ...]] = {cls: tuple(f.name for f in fields(cls)) for cls in MESSAGE_TYPES.values()}
@@ -43,7 +57,7 @@ def encode(msg: Message) -> bytes:
     elif cls is Release:
         body = _release_body(msg)
     else:
-        body = {"schema": SCHEMA_VERSION, "type": TYPE_NAMES[cls]}
+        body = {VERSION_FIELD: PROTOCOL_VERSION, "type": TYPE_NAMES[cls]}
         for name in _FIELDS[cls]:
             body[name] = _to_wire(getattr(msg, name))
     return msgpack.packb(body, use_bin_type=True)
@@ -60,14 +74,14 @@ def _wire_array(value: np.ndarray) -> dict:
 
 
 def _plan_body(m: PlanMessage) -> dict:
-    return {"schema": SCHEMA_VERSION, "type": "plan", "run": m.run, "k": _scalar(m.k), "iteration": _scalar(m.iteration),
+    return {VERSION_FIELD: PROTOCOL_VERSION, "type": "plan", "run": m.run, "k": _scalar(m.k), "iteration": _scalar(m.iteration),
             "sender": m.sender, "status": m.status, "z": _wire_array(m.z), "v": _wire_array(m.v),
             "cost": _scalar(m.cost), "solve_time": _scalar(m.solve_time), "qp_iterations": _scalar(m.qp_iterations),
             "sent_at": _scalar(m.sent_at)}
 
 
 def _release_body(m: Release) -> dict:
-    return {"schema": SCHEMA_VERSION, "type": "release", "run": m.run, "k": _scalar(m.k),
+    return {VERSION_FIELD: PROTOCOL_VERSION, "type": "release", "run": m.run, "k": _scalar(m.k),
             "iteration": _scalar(m.iteration), "x": _wire_array(m.x), "centres": _wire_array(m.centres),
             "sizes": _wire_array(m.sizes), "assumed": _wire_array(m.assumed), "sender": m.sender,
             "skipped": list(m.skipped),
@@ -99,15 +113,15 @@ def decode(payload: bytes) -> Message:
         raise DecodeError(f"not msgpack: {type(exc).__name__}") from None
     if type(body) is not dict:
         raise DecodeError("top level is not a map")
-    if body.get("schema") != SCHEMA_VERSION:
-        raise DecodeError(f"schema version {body.get('schema')!r} is not {SCHEMA_VERSION}")
+    if body.get(VERSION_FIELD) != PROTOCOL_VERSION:
+        raise VersionMismatch(body.get(VERSION_FIELD, body.get(OLD_VERSION_FIELD)))
     cls = MESSAGE_TYPES.get(body.get("type")) if isinstance(body.get("type"), str) else None
     if cls is None:
         raise DecodeError(f"unknown message type {body.get('type')!r}")
     if body.keys() == _WIRE_KEYS[cls]:
         return _PARSERS[cls](body)
     expected = _FIELD_SETS[cls]
-    present = set(body) - {"schema", "type"}
+    present = set(body) - {VERSION_FIELD, "type"}
     if not expected - _OPTIONAL.get(cls, frozenset()) <= present <= expected:
         missing, extra = sorted(expected - present), sorted(map(str, present - expected))
         raise DecodeError(f"{cls.__name__}: missing fields {missing}, unexpected fields {extra}")
@@ -205,7 +219,7 @@ def _parse_release(b: dict) -> Release:
 
 def _parse_plan(b: dict) -> PlanMessage:
     status = _str(b["status"], "status")
-    solved = status in ("solved", "solved_inaccurate")
+    solved = status in SOLVED
     z = _array(b["z"], "z", 2, allow_nan=not solved)
     v = _array(b["v"], "v", 2, allow_nan=not solved)
     if z.shape[0] != v.shape[0] + 1 or v.shape[0] < 1:
@@ -236,6 +250,24 @@ def _parse_stop(b: dict) -> Stop:
     return Stop(run=_str(b["run"], "run"), k=_int(b, "k"), reason=reason, sender=_str(b["sender"], "sender"))
 
 
-_PARSERS = {Release: _parse_release, PlanMessage: _parse_plan, Ready: _parse_ready, Stop: _parse_stop}
+def _vectors(value, name: str, limit: int) -> dict[str, np.ndarray]:
+    """A map subsystem name -> finite float64 vector, at most ``limit`` entries."""
+    if type(value) is not dict or not value or len(value) > limit:
+        raise DecodeError(f"{name}: expected a map subsystem name -> vector, 1 to {limit} entries")
+    return {_str(key, f"{name} key"): _array(vec, f"{name}[{key}]", 1) for key, vec in value.items()}
+
+
+def _parse_inputs(b: dict) -> Inputs:
+    return Inputs(run=_str(b["run"], "run"), k=_int(b, "k"), u=_vectors(b["u"], "u", 4096),
+                  sender=_str(b["sender"], "sender"))
+
+
+def _parse_state(b: dict) -> State:
+    return State(run=_str(b["run"], "run"), k=_int(b, "k"), sender=_str(b["sender"], "sender"),
+                 x=_vectors(b["x"], "x", 4096))
+
+
+_PARSERS = {Release: _parse_release, PlanMessage: _parse_plan, Ready: _parse_ready, Stop: _parse_stop,
+            Inputs: _parse_inputs, State: _parse_state}
 # every field present: the common case, checked with one comparison
-_WIRE_KEYS = {cls: frozenset(names) | {"schema", "type"} for cls, names in _FIELD_SETS.items()}
+_WIRE_KEYS = {cls: frozenset(names) | {VERSION_FIELD, "type"} for cls, names in _FIELD_SETS.items()}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -48,6 +48,17 @@ class FaultPlan:
     @property
     def is_clean(self) -> bool:
         return self.default.is_clean and all(f.is_clean for _, _, f in self.links)
+
+    def to_json(self) -> dict:
+        """The plan as JSON-ready data, which :meth:`from_json` reads back."""
+        return {"default": asdict(self.default), "links": [[s, r, asdict(f)] for s, r, f in self.links],
+                "seed": self.seed}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "FaultPlan":
+        """The plan :meth:`to_json` gave (KeyError, TypeError or ValueError when malformed)."""
+        return cls(default=LinkFault(**data["default"]),
+                   links=tuple((s, r, LinkFault(**f)) for s, r, f in data["links"]), seed=int(data["seed"]))
 
 
 def source_of(key: str) -> str:

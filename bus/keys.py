@@ -1,11 +1,16 @@
 """Every key expression of the protocol, built in one place.
 
-``dmpc/<run>/release``          plant -> every agent (one broadcast per round)
-``dmpc/<run>/plan/<agent>``     agent -> neighbours, plant
-``dmpc/<run>/ready/<agent>``    agent -> plant
-``dmpc/<run>/control``          plant -> all (Stop)
-``dmpc/<run>/alive/<role>``     liveliness tokens (``plant`` or ``agent-<name>``)
-``dmpc/<run>/telemetry/<kind>`` plant -> observers (``step``, ``meta``, ``end``; best effort)
+``dmpc/<run>/release``          coordinator -> every agent (one broadcast per round)
+``dmpc/<run>/plan/<agent>``     agent -> neighbours, coordinator
+``dmpc/<run>/ready/<agent>``    agent -> coordinator
+``dmpc/<run>/control``          coordinator -> all (Stop)
+``dmpc/<run>/inputs``           coordinator -> plant (the inputs of step k)
+``dmpc/<run>/state/<source>``   plant or sensor -> coordinator (``plant`` or ``sensor-<name>``)
+``dmpc/<run>/alive/<role>``     liveliness tokens (``coordinator``, ``plant``, ``sensor-<name>``,
+                                ``agent-<name>``)
+``dmpc/<run>/telemetry/<kind>`` coordinator -> observers (``step``, ``meta``, ``end``; best effort)
+
+docs/protocol.md describes each of them.
 """
 from __future__ import annotations
 
@@ -42,6 +47,18 @@ def alive(run: str, role: str) -> str:
     return f"{ROOT}/{run}/alive/{role}"
 
 
+def inputs(run: str) -> str:
+    return f"{ROOT}/{run}/inputs"
+
+
+def state(run: str, source: str) -> str:
+    return f"{ROOT}/{run}/state/{source}"
+
+
+def state_prefix(run: str) -> str:
+    return f"{ROOT}/{run}/state/*"
+
+
 def telemetry(run: str, kind: str) -> str:
     return f"{ROOT}/{run}/telemetry/{kind}"
 
@@ -50,8 +67,24 @@ def telemetry_prefix(run: str) -> str:
     return f"{ROOT}/{run}/telemetry/*"
 
 
+COORDINATOR_ROLE = "coordinator"
+PLANT_ROLE = "plant"
+AGENT_PREFIX = "agent-"
+SENSOR_PREFIX = "sensor-"
+
+
 def agent_role(agent: str) -> str:
-    return f"agent-{agent}"
+    return f"{AGENT_PREFIX}{agent}"
+
+
+def sensor_role(subsystem: str) -> str:
+    """The role of a plant process that measures subsystem ``subsystem`` alone."""
+    return f"{SENSOR_PREFIX}{subsystem}"
+
+
+def subsystem_of(role: str, prefix: str) -> str | None:
+    """The subsystem name in ``prefix<name>`` (``AGENT_PREFIX`` or ``SENSOR_PREFIX``), or None."""
+    return role[len(prefix):] if role.startswith(prefix) and len(role) > len(prefix) else None
 
 
 def alive_prefix(run: str) -> str:

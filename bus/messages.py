@@ -1,13 +1,17 @@
 """The messages of the step protocol (typed, immutable).
 
-- ``Release`` plant -> every agent (one broadcast): step k, Jacobi round, the measured state,
-  each agent's terminal centre and size and, per agent, which of its plans its neighbours build
-  their assumed trajectory from.
-- ``PlanMessage`` agent i -> neighbours and plant: the solved plan of (k, round).
-- ``Ready`` agent -> plant: the agent is set up (with the digest of its design).
-- ``Stop`` plant -> everyone: the run is over (finished, aborted, failed).
+- ``Release`` coordinator -> every agent (one broadcast): step k, Jacobi round, the measured
+  state, each agent's terminal centre and size and, per agent, which of its plans its neighbours
+  build their assumed trajectory from.
+- ``PlanMessage`` agent i -> neighbours and coordinator: the solved plan of (k, round).
+- ``Ready`` agent -> coordinator: the agent is set up (with the digest of its design).
+- ``Stop`` coordinator -> everyone: the run is over (finished, aborted, failed).
+- ``Inputs`` coordinator -> plant: the inputs u(k) to apply.
+- ``State`` plant (or one subsystem's sensor) -> coordinator: the measured state x(k).
 
-Agents are named by the scenario's subsystem names; the plant is ``"plant"``.
+Agents are named by the scenario's subsystem names; the coordinator is ``"coordinator"``, a plant
+that reports the whole state ``"plant"``, and one that reports subsystem I alone ``"sensor-I"``.
+Every message carries ``PROTOCOL_VERSION`` (docs/protocol.md).
 """
 from __future__ import annotations
 
@@ -15,7 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-SCHEMA_VERSION = 2
+PROTOCOL_VERSION = 3
+COORDINATOR = "coordinator"
 PLANT = "plant"
 
 
@@ -53,7 +58,7 @@ class Release:
     centres: np.ndarray
     sizes: np.ndarray
     assumed: np.ndarray
-    sender: str = PLANT
+    sender: str = COORDINATOR
     skipped: tuple[str, ...] = ()
     provided: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
@@ -119,19 +124,55 @@ class Stop:
     run: str
     k: int
     reason: str
-    sender: str = PLANT
+    sender: str = COORDINATOR
 
 
-Message = Release | PlanMessage | Ready | Stop
+@dataclass(frozen=True)
+class Inputs:
+    """The inputs to apply at step k, one entry per subsystem.
 
-MESSAGE_TYPES: dict[str, type] = {"release": Release, "plan": PlanMessage, "ready": Ready, "stop": Stop}
+    Attributes
+    ----------
+    u : dict name -> ndarray, shape (m_i,)
+        Subsystem i's input u_i(k), for every subsystem in the scenario's order.
+    """
+
+    run: str
+    k: int
+    u: dict[str, np.ndarray]
+    sender: str = COORDINATOR
+
+
+@dataclass(frozen=True)
+class State:
+    """The measured state x(k) of some or all subsystems, from ``sender``.
+
+    A plant that measures everything sends one ``State`` per step with every subsystem; a
+    sensor of subsystem I (``sender`` = ``"sensor-I"``) sends its own entry only.
+
+    Attributes
+    ----------
+    x : dict name -> ndarray, shape (n_i,)
+        Subsystem i's measured state x_i(k).
+    """
+
+    run: str
+    k: int
+    sender: str
+    x: dict[str, np.ndarray]
+
+
+Message = Release | PlanMessage | Ready | Stop | Inputs | State
+
+MESSAGE_TYPES: dict[str, type] = {"release": Release, "plan": PlanMessage, "ready": Ready, "stop": Stop,
+                                  "inputs": Inputs, "state": State}
 TYPE_NAMES: dict[type, str] = {v: k for k, v in MESSAGE_TYPES.items()}
 
 
 def design_claim(name: str, digest: str) -> str:
-    """The words with which the plant's ``Stop`` reason names agent ``name``'s differing design.
+    """The words with which the coordinator's ``Stop`` reason names agent ``name``'s differing design.
 
-    An agent that finds them with its own name and digest knows that the plant refused its design.
+    An agent that finds them with its own name and digest knows that the coordinator refused its design.
     """
     return f"agent {name} uses design {digest}"
 

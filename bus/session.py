@@ -6,6 +6,7 @@ from a file). Endpoint strings are checked here, before Zenoh sees them, so a ty
 """
 from __future__ import annotations
 
+import errno
 import ipaddress
 import json
 import re
@@ -27,10 +28,16 @@ _ENDPOINT = re.compile(
 )
 # Zenoh error messages end in " at /root/.cargo/.../file.rs:123." (noise for users).
 _RUST_LOCATION = re.compile(r"\s+at /\S+?\.rs:\d+\.?")
+# Zenoh passes the system's error on as Rust prints it: "Address already in use (os error 98)".
+_OS_ERROR = re.compile(r"\(os error (\d+)\)")
 
 
 class BusError(RuntimeError):
     """A transport failure: a session that cannot be opened, or a bus used after close."""
+
+
+class AddressInUse(BusError):
+    """A listen endpoint could not be bound: another socket holds its address (EADDRINUSE)."""
 
 
 @dataclass(frozen=True)
@@ -287,7 +294,7 @@ def open_session(config: zenoh.Config, timeout: float = 10.0) -> zenoh.Session:
     ------
     BusError
         The endpoints could not be reached, or a listen endpoint could not be bound; the
-        message names the endpoints.
+        message names the endpoints. :class:`AddressInUse` when a listen address is taken.
     """
     if timeout <= 0:
         raise ValueError(f"timeout must be positive, got {timeout}")
@@ -301,7 +308,8 @@ def open_session(config: zenoh.Config, timeout: float = 10.0) -> zenoh.Session:
         mode = json.loads(config.get_json("mode")) or "peer"
         reason = _RUST_LOCATION.sub("", str(exc)).strip()
         listen = _endpoints(config, "listen/endpoints")
-        raise BusError(
+        in_use = listen and any(int(code) == errno.EADDRINUSE for code in _OS_ERROR.findall(reason))
+        raise (AddressInUse if in_use else BusError)(
             f"cannot open a Zenoh {mode} session (connect={connect}, listen={listen}, "
             f"timeout={timeout:g} s): {reason}"
         ) from exc

@@ -17,6 +17,21 @@ stays single-threaded exactly as with the in-memory bus. Messages get there two 
 Messages keep their order per key; across keys, queued ones are handled first when ``run`` wakes,
 then the hot channels other than the first, then the first.
 
+Several handlers may subscribe to one key (or watch one liveliness pattern): the key has one Zenoh
+subscriber, and each message reaches every handler in the order they subscribed.
+
+Several nodes on one bus
+------------------------
+A bus opened with ``shared=True`` serves several nodes of one process (``dmpc agent --id A --id
+B``), which behave as they do alone:
+
+- a message published to a key that a node of this bus subscribes to is handed to its handlers
+  here (through the queue, bytes as sent), and Zenoh carries it only to other processes;
+- only the first hot key (the release, which every agent subscribes to) is read by ``run``
+  itself; later hot subscriptions go through the queue. ``run`` can wait on one channel only, and
+  a message on any other key must wake it at once, whichever node needs it;
+- ``expect`` is ignored for the same reason.
+
 Errors
 ------
 A handler (or timer) that raises propagates out of ``run`` on the calling thread; the event is
@@ -38,7 +53,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer
+from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer, key_matches
 from dmpc.bus.session import BusError, open_session, opens_abandoned, session_config
 
 log = logging.getLogger(__name__)
@@ -50,6 +65,14 @@ HOT_CAPACITY = 8192
 never wait for the node)."""
 
 
+class _Handlers(list):
+    """Every handler of one subscription, called in the order they subscribed."""
+
+    def __call__(self, key: str, value) -> None:
+        for handler in self:
+            handler(key, value)
+
+
 class _Hot:
     """One hot key: its Zenoh subscriber (a ring channel), handlers and session-local waker."""
 
@@ -58,8 +81,41 @@ class _Hot:
     def __init__(self, key: str, subscriber, waker) -> None:
         self.key = key
         self.subscriber = subscriber
-        self.handlers: list[Handler] = []
+        self.handlers = _Handlers()
         self.waker = waker
+
+
+class _Watch:
+    """One watched liveliness pattern: the tokens alive as dispatched so far, and its handlers.
+
+    A handler added after the first is primed on the ``run`` thread: it is told the tokens alive
+    at that moment and then gets every later event, as a Zenoh subscriber with history would.
+    """
+
+    __slots__ = ("alive", "handlers")
+
+    def __init__(self) -> None:
+        self.alive: set[str] = set()
+        self.handlers: list[list] = []  # [handler, primed]
+
+    def add(self, handler: AliveHandler, primed: bool) -> list:
+        slot = [handler, primed]
+        self.handlers.append(slot)
+        return slot
+
+    def prime(self, slot: list) -> None:
+        slot[1] = True
+        for key in sorted(self.alive):
+            slot[0](key, True)
+
+    def __call__(self, key: str, alive: bool) -> None:
+        if alive:
+            self.alive.add(key)
+        else:
+            self.alive.discard(key)
+        for handler, primed in self.handlers:
+            if primed:
+                handler(key, alive)
 # Closing a session can wait for a link to a peer that is hung (stopped, but its kernel still
 # accepts TCP connections); after this long the session is left to the process's exit.
 CLOSE_TIMEOUT = 1.0
@@ -113,6 +169,8 @@ class ZenohBus(Bus):
     max_payload : int
         Larger payloads are dropped on arrival (counted in ``dropped``) and never queued: no
         message of the protocol comes near it, and a flood of big ones must not fill memory.
+    shared : bool
+        Several nodes of this process use the bus (see "Several nodes on one bus" above).
 
     Attributes
     ----------
@@ -130,6 +188,7 @@ class ZenohBus(Bus):
         close_session: bool = True,
         max_queue: int = 1_000_000,
         max_payload: int = 1 << 20,
+        shared: bool = False,
     ) -> None:
         if isinstance(source, zenoh.Config):
             self._session = open_session(source, open_timeout)
@@ -140,6 +199,7 @@ class ZenohBus(Bus):
         self._close_session = close_session
         self._max_queue = max_queue
         self._max_payload = max_payload
+        self._shared = shared
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._timers: list = []
         self._seq = itertools.count()
@@ -150,6 +210,10 @@ class ZenohBus(Bus):
         self.dropped = 0
         self.callback_errors = 0
         self._hot: dict[str, _Hot] = {}  # by key, in the order subscribed
+        self._subscribed: dict[str, _Handlers] = {}  # every key's handlers, hot or not
+        self._queued: dict[str, _Handlers] = {}  # keys whose messages come through the queue
+        self._wildcards: list[tuple[str, _Handlers]] = []  # for delivery inside a shared bus
+        self._watches: dict[str, _Watch] = {}
         self._first: _Hot | None = None
         self._others: list[_Hot] = []
         self._expected: _Hot | None = None
@@ -188,6 +252,8 @@ class ZenohBus(Bus):
                         reliability=zenoh.Reliability.RELIABLE,
                         priority=zenoh.Priority.REAL_TIME,
                         express=True,
+                        # a shared bus hands its own nodes their messages itself (publish)
+                        allowed_destination=zenoh.Locality.REMOTE if self._shared else zenoh.Locality.ANY,
                     )
                     self._publishers[key] = publisher
         return publisher
@@ -195,10 +261,22 @@ class ZenohBus(Bus):
     def publish(self, key: str, payload: bytes) -> None:
         """Send ``payload`` to every subscriber of ``key`` (BusError once closed)."""
         self._check_open()
+        data = bytes(payload)
+        if self._shared:
+            self._deliver_here(key, data)
         try:
-            self._publisher(key).put(bytes(payload))
+            self._publisher(key).put(data)
         except zenoh.ZError as exc:
             raise BusError(f"publish on {key!r} failed: {exc}") from exc
+
+    def _deliver_here(self, key: str, data: bytes) -> None:
+        """Queue ``data`` for this bus's own subscribers of ``key`` (a shared bus)."""
+        handlers = self._subscribed.get(key)
+        if handlers is not None:
+            self._enqueue(handlers, key, data)
+        for pattern, more in self._wildcards:
+            if key_matches(pattern, key):
+                self._enqueue(more, key, data)
 
     def wait_for_subscribers(self, key: str, timeout: float) -> bool:
         """Wait until at least one subscriber matches ``key``; False after ``timeout`` seconds.
@@ -264,16 +342,27 @@ class ZenohBus(Bus):
         """Call ``handler(key, payload)`` on the ``run`` thread for each message on ``key``.
 
         ``hot``: ``run`` reads this key's messages from Zenoh itself, without a hand-over
-        between threads (more handlers on the same key are fine).
+        between threads (on a shared bus, only for the first hot key). More handlers on the same
+        key share its subscriber.
         """
         expr = _key_expr(key)
-        if not hot:
-            self._declare(lambda: self._session.declare_subscriber(expr, self._on_sample(handler)))
-            return
-        entry = self._hot.get(key)
-        if entry is None:
-            entry = self._declare_hot(key, expr)
-        entry.handlers.append(handler)
+        if hot and self._shared and (key in self._queued or (self._first is not None and key not in self._hot)):
+            hot = False  # a shared bus waits on one hot key only (see the module docstring)
+        if hot:
+            entry = self._hot.get(key)
+            if entry is None:
+                entry = self._declare_hot(key, expr)
+            handlers = entry.handlers
+        else:
+            handlers = self._queued.get(key)
+            if handlers is None:
+                handlers = self._queued[key] = _Handlers()
+                self._declare(lambda: self._session.declare_subscriber(expr, self._on_sample(handlers)))
+        handlers.append(handler)
+        if key not in self._subscribed:
+            self._subscribed[key] = handlers
+            if "*" in key:
+                self._wildcards.append((key, handlers))
 
     def _declare_hot(self, key: str, expr: zenoh.KeyExpr) -> _Hot:
         with self._lock:
@@ -296,7 +385,8 @@ class ZenohBus(Bus):
         A hint: messages on other keys are still handled, but a hot one may wait until ``run``
         wakes for another reason (at most ``POLL`` seconds).
         """
-        self._expected = self._hot.get(key) if key is not None else None
+        if not self._shared:
+            self._expected = self._hot.get(key) if key is not None else None
 
     def _alarm_loop(self) -> None:
         """Wake a run() waiting on the hot channel when its next timer or POLL comes due.
@@ -324,11 +414,22 @@ class ZenohBus(Bus):
 
     def watch_alive(self, pattern: str, handler: AliveHandler) -> None:
         """Call ``handler(key, alive)`` on the ``run`` thread as tokens matching ``pattern``
-        appear or disappear; tokens that exist already are reported as alive."""
+        appear or disappear; tokens that exist already are reported as alive.
+
+        Handlers of one pattern share its Zenoh subscriber; a later one is told the tokens
+        alive when ``run`` reaches it, then every change.
+        """
         expr = _key_expr(pattern)
+        watch = self._watches.get(pattern)
+        if watch is not None:
+            slot = watch.add(handler, primed=False)
+            self._enqueue(lambda _key, _value: watch.prime(slot), pattern, None)
+            return
+        watch = self._watches[pattern] = _Watch()
+        watch.add(handler, primed=True)  # Zenoh's history brings it the tokens alive now
         self._declare(
             lambda: self._session.liveliness().declare_subscriber(
-                expr, self._on_alive(handler), history=True
+                expr, self._on_alive(watch), history=True
             )
         )
 
@@ -432,7 +533,7 @@ class ZenohBus(Bus):
         handlers = entry.handlers
         if len(handlers) == 1:
             return handlers[0], str(sample.key_expr), data
-        return _to_all(handlers), str(sample.key_expr), data
+        return handlers, str(sample.key_expr), data
 
     def queue_depth(self) -> int:
         """Events received and not yet dispatched."""
@@ -488,14 +589,6 @@ def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback:
     # the interpreter joins at exit before atexit hooks run: a bus left open then hangs the
     # process. Our callbacks only enqueue, so they can run on Zenoh's own thread.
     return zenoh.handlers.Callback(fn, indirect=False)
-
-
-def _to_all(handlers: list[Handler]) -> Handler:
-    def deliver(key: str, data: bytes) -> None:
-        for handler in handlers:
-            handler(key, data)
-
-    return deliver
 
 
 def _wake_key(key: str) -> str:

@@ -43,7 +43,7 @@ _LAZY = {"load_scenario": "dmpc.api", "simulate": "dmpc.api", "run": "dmpc.api",
 def design(scenario: "ScenarioLike") -> "Design":
     """The offline design of a scenario (:func:`dmpc.api.design`): gains, terminal set, sigma,
     horizon and checks, the same as ``dmpc design --json``."""
-    from dmpc.api import design as offline_design
+    from dmpc.api import design as offline_design  # start-up time: `import dmpc` loads the API on first use
 
     return offline_design(scenario)
 

@@ -10,21 +10,25 @@ import contextlib
 import re
 import secrets
 import tempfile
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Union
-
-import numpy as np
+from typing import Union
 
 from dmpc.offline_design import Design
+from dmpc.bus import keys
+from dmpc.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from dmpc.plant.models import PlantModelError
+from dmpc.records.files import LOGS, log_file
+from dmpc.records.session import RunRecorder
 from dmpc.result import Result, load_run
+from dmpc.run_spec import PlantFunction
+from dmpc.runtime.inprocess import record_run
+from dmpc.runtime.launcher import default_topology, launch
+from dmpc.runtime.plant_setup import function_reference, load_plant_function, with_plant_function
+from dmpc.runtime.setup import prepare
+from dmpc.scenario import Scenario, load_scenario as load_file, validate_scenario
 
-if TYPE_CHECKING:
-    from dmpc.scenario import Scenario
-
-ScenarioLike = Union[str, Path, Mapping, "Scenario"]
-PlantFunction = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
+ScenarioLike = Union[str, Path, Mapping, Scenario]
 
 __all__ = ["RunError", "design", "load_run", "load_scenario", "run", "simulate"]
 
@@ -56,8 +60,6 @@ def load_scenario(source: ScenarioLike, /, **overrides) -> "Scenario":
     dmpc.scenario.ScenarioError
         One line naming the field at fault.
     """
-    from dmpc.scenario import Scenario, load_scenario as load_file, validate_scenario
-
     pairs = {key.replace("__", "."): value for key, value in overrides.items()}
     if isinstance(source, Scenario):
         if not pairs:
@@ -70,8 +72,6 @@ def load_scenario(source: ScenarioLike, /, **overrides) -> "Scenario":
 
 
 def _prepared(scenario: ScenarioLike, method: str | None = None, steps: int | None = None):
-    from dmpc.runtime.setup import prepare
-
     extra = {}
     if method is not None:
         extra["options__method"] = method
@@ -133,10 +133,6 @@ def simulate(scenario: ScenarioLike, *, method: str | None = None, out: str | Pa
     RunError
         The run could not complete.
     """
-    from dmpc.records.session import RunRecorder
-    from dmpc.runtime.inprocess import record_run
-    from dmpc.runtime.plant_setup import with_plant_function
-
     prepared = _prepared(scenario, method, steps)
     if plant is not None:
         prepared = with_plant_function(prepared, plant)
@@ -181,9 +177,6 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
     ValueError
         ``plant`` cannot be imported by another process.
     """
-    from dmpc.runtime.launcher import default_topology, launch
-    from dmpc.runtime.plant_setup import function_reference, load_plant_function, with_plant_function
-
     prepared = _prepared(scenario, method, steps)
     reference = None
     if plant is not None:
@@ -196,15 +189,15 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
     with _run_folder(out) as (folder, temporary):
         outcome = launch(prepared, folder, run_id, startup_timeout=startup_timeout, show_progress=progress,
                          topology=topology or default_topology(prepared.system.M), plant_model=reference)
-        if outcome.code == 130:
+        if outcome.code == EXIT_INTERRUPTED:
             raise KeyboardInterrupt
-        if outcome.code != 0:
+        if outcome.code != EXIT_OK:
             _raise_failure(folder, outcome.message, plant is not None)
         return load_run(folder, in_temporary_folder=temporary)
 
 
 def _raise_failure(folder: Path, message: str, has_function: bool) -> None:
-    log_path = folder / "logs" / "plant.log"
+    log_path = folder / LOGS / log_file(keys.PLANT_ROLE)
     log = log_path.read_text(errors="replace") if log_path.is_file() else ""
     if has_function and ("PlantModelError" in log or "the plant function" in log):
         tail = "\n".join(log.strip().splitlines()[-40:])

@@ -18,8 +18,22 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from dmpc.agents.local_qp import LocalQP
+from dmpc.bench_floor import FloorSpec, measure
+from dmpc.bus import keys
+from dmpc.bus.codec import encode
+from dmpc.bus.messages import PlanMessage, Release
+from dmpc.central_qp import CentralQP
+from dmpc.design.gains import lmi_gains
+from dmpc.design.terminal_set import LOCAL_ABOVE, maximal_admissible_set
+from dmpc.records.files import PROCESSES, STEP_LOG, SUMMARY, TRAJECTORY
 from dmpc.records.run_folder import stage_cost
+from dmpc.runtime import inprocess
+from dmpc.runtime.horizon import StartCheck
+from dmpc.runtime.inprocess import simulate
 from dmpc.runtime.launcher import default_topology
+from dmpc.runtime.setup import prepare, protocol_options
+from dmpc.scenario import alpha0_vector, build_system, load_scenario
 
 
 def machine() -> dict:
@@ -56,9 +70,6 @@ def chain_overrides(M: int, steps: int, horizon: int | None = None) -> tuple[str
 
 
 def _prepare(M: int, steps: int, horizon: int | None = None, root: Path = Path(".")):
-    from dmpc.runtime.setup import prepare
-    from dmpc.scenario import load_scenario
-
     path, overrides = chain_overrides(M, steps, horizon)
     return prepare(load_scenario(root / path, overrides))
 
@@ -66,23 +77,18 @@ def _prepare(M: int, steps: int, horizon: int | None = None, root: Path = Path("
 # ---------------------------------------------------------------------------- local QP
 def qp_solve_times(horizon: int, repeat: int, root: Path = Path(".")) -> dict:
     """Replay the QPs one agent of the paper's example solves in a closed loop (30 steps)."""
-    from dmpc.agents.local_qp import LocalQP
-    from dmpc.runtime.inprocess import simulate
-
     prepared = _prepare(4, 30, horizon, root)
     agent = 1
     calls: list[tuple] = []
     original = LocalQP.solve
 
-    def recording(self, x, c, alpha, beta):
+    def recording(self, x, c, centre, size):
         if getattr(self, "_bench_record", False):
-            calls.append((x.copy(), c.copy(), alpha.copy(), beta))
-        return original(self, x, c, alpha, beta)
+            calls.append((x.copy(), c.copy(), centre.copy(), size))
+        return original(self, x, c, centre, size)
 
     LocalQP.solve = recording
     try:
-        from dmpc.runtime import inprocess
-
         build = inprocess.build_run
 
         def marking(*args, **kwargs):
@@ -101,9 +107,9 @@ def qp_solve_times(horizon: int, repeat: int, root: Path = Path(".")) -> dict:
     qp = LocalQP(sub, prepared.design.gains.P[agent], horizon, prepared.design.tightening[agent])
     times = []
     for _ in range(repeat):
-        for x, c, alpha, beta in calls:
+        for x, c, centre, size in calls:
             t0 = time.perf_counter()
-            qp.solve(x, c, alpha, beta)
+            qp.solve(x, c, centre, size)
             times.append(time.perf_counter() - t0)
     t = np.array(times) * 1e6
     return {"N": horizon, "solves": int(t.size), "us_p50": float(np.median(t)), "us_p99": float(np.percentile(t, 99))}
@@ -136,11 +142,11 @@ def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), 
     if proc.returncode != 0:
         return {"M": M, "completed": False, "topology": default_topology(M),
                 "reason": proc.stderr.read().decode(errors="replace")[-600:]}
-    data = np.load(out / "trajectory.npz")
+    data = np.load(out / TRAJECTORY)
     step = data["step_time"][1:] * 1e3
     slowest = np.nanmax(data["solve_time"][1:], axis=1) * 1e3
-    agents = [v for k, v in peak.items() if k.startswith("agent-")]
-    summary = json.loads((out / "summary.json").read_text())
+    agents = [v for k, v in peak.items() if keys.subsystem_of(k, keys.AGENT_PREFIX) is not None]
+    summary = json.loads((out / SUMMARY).read_text())
     return {
         "M": M, "completed": True, "topology": default_topology(M), "steps": int(data["step_time"].size), "wall_s": wall,
         "step_ms_p50": float(np.median(step)), "step_ms_p99": float(np.percentile(step, 99)),
@@ -148,7 +154,7 @@ def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), 
         "bus_share_p50": float(np.median((step - slowest) / step)),
         "rss_mb_per_agent": max(a[0] for a in agents) if agents else None,
         "pss_mb_per_agent": max(a[1] for a in agents) if agents else None,
-        "rss_mb_plant": peak.get("plant", (None, None))[0],
+        "rss_mb_plant": peak.get(keys.PLANT_ROLE, (None, None))[0],
         "rss_mb_total": sum(v[0] for v in peak.values()), "pss_mb_total": sum(v[1] for v in peak.values()),
         "closed_loop_cost": summary["closed_loop_cost"], "feasible": summary["feasible"],
     }
@@ -158,10 +164,6 @@ def floor_spec(M: int, steps: int, compute_us: float, root: Path = Path(".")):
     """The bare lockstep loop (:mod:`dmpc.bench_floor`) that mirrors a run of M agents: the same
     processes, topology and neighbours, payloads of the run's release and plan sizes, and
     ``compute_us`` of CPU per agent and step."""
-    from dmpc.bench_floor import FloorSpec
-    from dmpc.bus.codec import encode
-    from dmpc.bus.messages import PlanMessage, Release
-
     prepared = _prepare(M, steps, root=root)
     system, N = prepared.system, prepared.design.horizon
     run = f"{prepared.name}-0123abcd"  # the launcher's run ids have this length
@@ -178,8 +180,6 @@ def floor_spec(M: int, steps: int, compute_us: float, root: Path = Path(".")):
 
 def run_floor(M: int, steps: int, compute_us: float, root: Path = Path("."), timeout: float = 900) -> dict:
     """The floor of a run of M agents: :func:`floor_spec` measured by :func:`dmpc.bench_floor.measure`."""
-    from dmpc.bench_floor import measure
-
     return measure(floor_spec(M, steps, compute_us, root), timeout)
 
 
@@ -201,10 +201,10 @@ def run_against_floor(M: int, steps: int, compute_us: float, workdir: Path, root
 
 def _sample_memory(out: Path, peak: dict) -> None:
     try:
-        pids = json.loads((out / "processes.json").read_text())
+        pids = json.loads((out / PROCESSES).read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return
-    if not (out / "steps.jsonl").exists():
+    if not (out / STEP_LOG).exists():
         return  # still starting: sample the steady state only
     for role, pid in pids.items():
         try:
@@ -232,8 +232,6 @@ def _closed_loop(step: Callable[[np.ndarray], np.ndarray], system, steps: int) -
 
 
 def run_inprocess(M: int, steps: int, root: Path = Path(".")) -> dict:
-    from dmpc.runtime.inprocess import simulate
-
     prepared = _prepare(M, steps, root=root)
     records, stamps = [], []
 
@@ -250,8 +248,6 @@ def run_inprocess(M: int, steps: int, root: Path = Path(".")) -> dict:
 
 
 def run_central_osqp(M: int, steps: int, root: Path = Path(".")) -> dict:
-    from dmpc.centralized import CentralQP
-
     prepared = _prepare(M, steps, root=root)
     qp = CentralQP(prepared.system, prepared.design.gains.P_global(), prepared.design.horizon, "omega",
                    prepared.design.terminal.omega)
@@ -300,12 +296,6 @@ def design_scaling(M: int, root: Path = Path("."), compare: bool = False) -> dic
     the set from LPs on each row's neighbourhood (``same_omega``: the same rows to 1e-12;
     ``same_sigma0``: sigma(alpha0) equal to 1e-12).
     """
-    from dmpc.design.gains import lmi_gains
-    from dmpc.design.terminal_set import LOCAL_ABOVE, maximal_admissible_set
-    from dmpc.runtime.horizon import StartCheck
-    from dmpc.runtime.setup import protocol_options
-    from dmpc.scenario import alpha0_vector, build_system, load_scenario
-
     path, overrides = chain_overrides(M, 1)
     overrides["design.gains"] = "lmi"
     scenario = load_scenario(root / path, overrides)

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dmpc.bus.session import free_tcp_port, open_session, session_config
+
 KEY = "dmpc-floor"
 _HEADER = struct.Struct("<q")
 STOP = -1
@@ -71,8 +73,6 @@ def _step_of(sample) -> int:
 
 
 def _open(spec: FloorSpec, port: int, coordinator: bool):
-    from dmpc.bus.session import open_session, session_config
-
     endpoint = f"tcp/127.0.0.1:{port}"
     if coordinator:
         config = session_config(mode="router" if spec.topology == "star" else "peer", listen=[endpoint])
@@ -182,8 +182,6 @@ def measure(spec: FloorSpec, timeout: float = 600.0) -> dict:
         ``step_ms_p50``, ``step_ms_p99``, ``steps``, and the spec's figures; ``completed`` False
         with a ``reason`` if a process failed or the loop did not end within ``timeout`` s.
     """
-    from dmpc.bus.session import free_tcp_port
-
     port = free_tcp_port()
     with tempfile.TemporaryDirectory(prefix="dmpc-floor-") as tmp:
         spec_path, out = Path(tmp) / "spec.json", Path(tmp) / "times.json"

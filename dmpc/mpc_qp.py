@@ -22,7 +22,6 @@ steps and the others do not.
 """
 from __future__ import annotations
 
-import enum
 import time
 from dataclasses import dataclass
 
@@ -31,22 +30,9 @@ import osqp
 import scipy.sparse as sp
 from osqp import SolverStatus
 
+from dmpc.qp_status import QPStatus
 
-class QPStatus(str, enum.Enum):
-    """Solver outcome in the project's own terms."""
-
-    SOLVED = "solved"
-    INACCURATE = "solved_inaccurate"
-    INFEASIBLE = "infeasible"
-    UNBOUNDED = "unbounded"
-    MAX_ITER = "max_iter"
-    ERROR = "error"
-
-    @property
-    def feasible(self) -> bool:
-        return self in (QPStatus.SOLVED, QPStatus.INACCURATE)
-
-
+# OSQP's integer status codes (its SolverStatus enum) in the project's terms
 _OSQP_STATUS = {
     SolverStatus.OSQP_SOLVED: QPStatus.SOLVED,
     SolverStatus.OSQP_SOLVED_INACCURATE: QPStatus.INACCURATE,
@@ -179,10 +165,6 @@ class MpcQP:
         self._solver = osqp.OSQP()
         self._solver.setup(P=2.0 * sp.triu(cost, format="csc"), q=np.zeros(nz + nv),
                            A=sp.vstack(blocks, format="csc"), l=self._l, u=self._u, **opts)
-        # The wrapper's update() and solve() copy the bounds, build a namespace of every info
-        # field and warn on each call: about 20 us on a 50 us solve. The extension object
-        # underneath gives the same data without that overhead.
-        self._core = getattr(self._solver, "_solver", None)
         self._refine = int(opts["polish_refine_iter"])
         self._nvars = nz + nv
         self._cold = False
@@ -233,10 +215,6 @@ class MpcQP:
 
     def _run(self, l: np.ndarray, u: np.ndarray):
         """Set the bounds l, u (each (rows,)) and solve; OSQP's info and primal solution (vars,)."""
-        if self._core is not None:
-            self._core.update_data_vec(q=None, l=l, u=u)
-            self._core.solve()
-            return self._core.info, self._core.solution.x
         self._solver.update(l=l, u=u)
         res = self._solver.solve(raise_error=False)
         return res.info, res.x

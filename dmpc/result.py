@@ -15,7 +15,10 @@ from typing import Mapping
 import numpy as np
 
 from dmpc.offline_design import Design
+from dmpc.records.files import DESIGN, DISTURBANCE, SCENARIO, SUMMARY, TRAJECTORY
 from dmpc.quantities import Quantity, default_quantities, quantities
+from dmpc.result_plots import plot_result
+from dmpc.scenario import load_scenario
 
 
 class RunFolderNotReadable(ValueError):
@@ -122,8 +125,6 @@ class Result:
         Axes are in seconds when the scenario has ``dt``; quantities carry their names and
         units; ``bounds`` draws the state and input bounds as dashed lines.
         """
-        from dmpc.result_plots import plot_result
-
         return plot_result(self, bounds=bounds)
 
 
@@ -147,9 +148,7 @@ def _read_json(path: Path) -> dict | None:
 
 def _scenario(folder: Path):
     try:
-        from dmpc.scenario import load_scenario
-
-        return load_scenario(folder / "scenario.yaml")
+        return load_scenario(folder / SCENARIO)
     except Exception:  # noqa: BLE001 - an older or hand-edited scenario: the arrays still load
         return None
 
@@ -169,13 +168,13 @@ def load_run(folder, *, in_temporary_folder: bool = False) -> Result:
         No ``trajectory.npz`` or ``summary.json`` (a run still going, or crashed before its end).
     """
     folder = Path(folder)
-    summary = _read_json(folder / "summary.json")
-    if not (folder / "trajectory.npz").is_file() or summary is None:
-        raise RunFolderNotReadable(f"{folder}: not a finished run folder (trajectory.npz and summary.json are "
+    summary = _read_json(folder / SUMMARY)
+    if not (folder / TRAJECTORY).is_file() or summary is None:
+        raise RunFolderNotReadable(f"{folder}: not a finished run folder ({TRAJECTORY} and {SUMMARY} are "
                                    "written at the end of a run)")
-    with np.load(folder / "trajectory.npz", allow_pickle=False) as data:
+    with np.load(folder / TRAJECTORY, allow_pickle=False) as data:
         arrays = {key: data[key] for key in data.files}
-    design_data = _read_json(folder / "design.json") or {}
+    design_data = _read_json(folder / DESIGN) or {}
     scenario = _scenario(folder)
     names, n, m = _layout(arrays, scenario, design_data)
     if scenario is not None:
@@ -187,8 +186,8 @@ def load_run(folder, *, in_temporary_folder: bool = False) -> Result:
     x, u = arrays["x"], arrays["u"]
     K = u.shape[0]
     w = np.zeros((K, x.shape[1]))
-    if (folder / "disturbance.npy").is_file():
-        drawn = np.load(folder / "disturbance.npy", allow_pickle=False)
+    if (folder / DISTURBANCE).is_file():
+        drawn = np.load(folder / DISTURBANCE, allow_pickle=False)
         w[:min(K, drawn.shape[0])] = drawn[:K]
     t = np.arange(K + 1, dtype=float) * (dt if dt is not None else 1.0)
     design = Design.from_json(design_data, names) if design_data else None

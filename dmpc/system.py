@@ -5,6 +5,7 @@ Subsystems are indexed 0..M-1 internally; ``Subsystem.name`` keeps the user's id
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -49,24 +50,78 @@ class LinearSet:
         return self.H.shape[0] == self.H.shape[1] and np.array_equal(self.H, np.eye(self.H.shape[0]))
 
     def one_sided(self) -> tuple[np.ndarray, np.ndarray]:
-        """The set as ``G x <= g`` with only finite rows.
+        """The set as ``G x <= g`` with only the finite sides: row r's upper side, then its lower one.
 
         Returns
         -------
         G : ndarray, shape (q, n)
+            A CSR matrix when H is sparse.
         g : ndarray, shape (q,)
         """
-        rows, rhs = [], []
-        for r in range(self.H.shape[0]):
-            if np.isfinite(self.upper[r]):
-                rows.append(self.H[r])
-                rhs.append(self.upper[r])
-            if np.isfinite(self.lower[r]):
-                rows.append(-self.H[r])
-                rhs.append(-self.lower[r])
-        if not rows:
-            return np.zeros((0, self.dim)), np.zeros(0)
-        return np.array(rows), np.array(rhs)
+        r = self.H.shape[0]
+        kept = np.column_stack([np.isfinite(self.upper), np.isfinite(self.lower)]).ravel()  # (2r,)
+        rows = np.repeat(np.arange(r), 2)[kept]
+        sign = np.tile([1.0, -1.0], r)[kept]
+        g = np.column_stack([self.upper, -self.lower]).ravel()[kept]
+        if sp.issparse(self.H):
+            return (sp.diags(sign) @ sp.csr_matrix(self.H)[rows]).tocsr(), g
+        return sign[:, None] * self.H[rows], g
+
+    def excess(self, values: np.ndarray, tolerance: float = 0.0) -> np.ndarray:
+        """How far each row of ``values`` lies outside the set.
+
+        Each finite bound is first moved outwards by ``tolerance * max(1, |bound|)``; infinite
+        bounds never bind.
+
+        Parameters
+        ----------
+        values : ndarray, shape (K, d)
+        tolerance : float
+
+        Returns
+        -------
+        ndarray, shape (K,)
+            max over the set's rows of (H v - upper, lower - H v): negative strictly inside, NaN
+            for a row with a NaN value, -inf for a set without rows.
+        """
+        if values.shape[0] == 0:
+            return np.zeros(0)
+        return self._excess(values, tolerance, axis=1)
+
+    def largest_excess(self, values: np.ndarray, tolerance: float = 0.0) -> float:
+        """The largest entry of :meth:`excess` (-inf when there are no values): one number, as
+        the plant needs it for every plan it receives."""
+        if values.shape[0] == 0:
+            return -math.inf
+        return float(self._excess(values, tolerance, axis=None))
+
+    def _excess(self, values: np.ndarray, tolerance: float, axis: int | None):
+        HT, lower, upper, finite = self._bounds(tolerance)
+        if lower.size == 0:
+            return np.full(values.shape[0], -np.inf) if axis else -math.inf
+        Hv = values if HT is None else values @ HT
+        if finite:
+            return np.maximum(Hv - upper, lower - Hv).max(axis=axis)
+        # an infinite value against an infinite bound gives NaN on that side only: fmax takes the other side
+        with np.errstate(invalid="ignore"):
+            return np.fmax(Hv - upper, lower - Hv).max(axis=axis)
+
+    def _bounds(self, tolerance: float) -> tuple:
+        """H^T (None for a box), the bounds moved out by ``tolerance``, and whether all are
+        finite; kept per tolerance, since the plant checks every plan against its input set."""
+        entry = self._widened.get(tolerance)
+        if entry is None:
+            lower, upper = self.lower, self.upper
+            if tolerance:
+                lower = lower - tolerance * np.maximum(1.0, np.abs(lower))
+                upper = upper + tolerance * np.maximum(1.0, np.abs(upper))
+            finite = bool(np.isfinite(lower).all() and np.isfinite(upper).all())
+            entry = self._widened[tolerance] = (None if self.is_box else self.H.T, lower, upper, finite)
+        return entry
+
+    @cached_property
+    def _widened(self) -> dict:
+        return {}
 
     def box_radius(self) -> np.ndarray:
         """Half-widths ``ubar`` such that ``{|x| <= ubar}`` contains the set (boxes only).
@@ -258,6 +313,30 @@ def block_diag(*blocks: np.ndarray) -> np.ndarray:
     scipy.linalg, which costs about 8 MB per process.
     """
     return sp.block_diag(blocks, format="csr").toarray() if blocks else np.zeros((0, 0))
+
+
+def stack_sets(sets: list[LinearSet | None], dims: list[int], sparse: bool = False) -> LinearSet | None:
+    """The block-diagonal stack of per-subsystem sets, e.g. U = U_1 x ... x U_M.
+
+    Parameters
+    ----------
+    sets : list of LinearSet or None
+        None for a subsystem without a set: it adds no rows.
+    dims : list of int
+        The dimension of each subsystem's part (its set's ``dim``).
+    sparse : bool
+        H as a CSR matrix (for large systems) instead of a dense array.
+
+    Returns
+    -------
+    LinearSet, with H of shape (sum of rows, sum of dims); None when no subsystem has a set.
+    """
+    if all(s is None for s in sets):
+        return None
+    full = [s if s is not None else LinearSet(np.zeros((0, d)), np.zeros(0), np.zeros(0)) for s, d in zip(sets, dims)]
+    blocks = [s.H for s in full]
+    H = sp.block_diag(blocks, format="csr") if sparse else block_diag(*blocks)
+    return LinearSet(H, np.concatenate([s.lower for s in full]), np.concatenate([s.upper for s in full]))
 
 
 def project_onto(linear_set: LinearSet, u: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The step barrier and coordinator: a pure state machine (no bus, no clock).
+"""The step barrier and coordinator: a pure state machine (no bus; time only from the host's clock).
 
 Per step k it releases round 0 to every agent, collects their plans, runs further Jacobi rounds
 while the plans still move (k = 0: to convergence), then finalises the step: inputs (with the
@@ -7,64 +7,43 @@ refused plans), alpha(k+1) = (A+BK) eta, beta(k+1) = sigma(alpha(k+1)) (or anoth
 terminal update, dmpc.methods.policy), the plant update and the step record.
 
 Inputs are method calls (``start``, ``on_plan``, ``on_deadline``, ``on_agent_lost``,
-``on_agent_back``); outputs are lists of actions for the hosting process to carry out.
+``on_agent_back``, ``step_opened``); outputs are lists of actions for the hosting process to carry
+out. The coordinator is the one place that accepts or rejects a plan: ``on_plan`` says why it
+dropped one. The host's clock, if given, only times the records (plan latency, step time).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from dmpc.bus.messages import PlanMessage, Release
+from dmpc.central_qp import CentralQP
 from dmpc.design import Design
-from dmpc.mpc_qp import QPStatus, plan_cost
+from dmpc.methods import terminal_policy
+from dmpc.methods.policy import TerminalPolicy
+from dmpc.mpc_qp import plan_cost
 from dmpc.plant.dynamics import Plant
+from dmpc.qp_status import SOLVED, QPStatus
 from dmpc.security.rejects import MAX_MAGNITUDE, magnitude
+from dmpc.steps import ProtocolOptions, StepRecord
 from dmpc.system import CoupledSystem, LinearSet, project_onto
 from dmpc.trajectories import Plan, candidate_plan, shifted_input
 
-SOLVED_STATUSES = ("solved", "solved_inaccurate")
 KNOWN_STATUSES = frozenset(s.value for s in QPStatus)
 # A solved plan may leave U_i by this much times max(1, |bound|): OSQP solves to about 1e-7,
 # so an honest plan stays well inside, and anything beyond is refused.
 INPUT_TOLERANCE = 1e-6
 INPUT_REFUSED = "input outside U_i"
-
-
-_LIMITS: dict[int, tuple] = {}  # id(input set) -> (the set, H^T or None for a box, lower and upper limits)
-
-
-def _limits(input_set: LinearSet) -> tuple:
-    entry = _LIMITS.get(id(input_set))
-    if entry is None or entry[0] is not input_set:
-        H, lower, upper = input_set.H, input_set.lower, input_set.upper
-        box = H.shape[0] == H.shape[1] and np.array_equal(H, np.eye(H.shape[0]))
-        entry = (input_set, None if box else H.T, lower - INPUT_TOLERANCE * np.maximum(1.0, np.abs(lower)),
-                 upper + INPUT_TOLERANCE * np.maximum(1.0, np.abs(upper)))
-        _LIMITS[id(input_set)] = entry
-    return entry
+STALE = "stale"  # a plan for a closed round: normal in realtime (it came after the deadline)
 
 
 def input_excess(input_set: LinearSet, v: np.ndarray) -> float:
     """How far the inputs ``v`` (one per row, shape (N, m_i)) leave ``input_set`` beyond
     ``INPUT_TOLERANCE``; > 0 means refused. Infinite bounds never bind."""
-    _, HT, lower, upper = _limits(input_set)
-    Hv = v if HT is None else v @ HT
-    if Hv.size == 0:
-        return -math.inf
-    return float(max((Hv - upper).max(), (lower - Hv).max()))
-
-
-@dataclass(frozen=True)
-class ProtocolOptions:
-    """What the coordinator needs from the scenario's options."""
-
-    steps: int
-    iterations: int = 1
-    tolerance: float = 1e-9
-    initial_iterations: int = 200
-    initial_tolerance: float = 1e-9
+    return input_set.largest_excess(v, INPUT_TOLERANCE)
 
 
 @dataclass(frozen=True)
@@ -82,7 +61,16 @@ class RoundOpened:
 
 @dataclass(frozen=True)
 class StepCompleted:
-    record: "StepRecord"
+    record: StepRecord
+
+
+@dataclass(frozen=True)
+class ApplyInputs:
+    """The step's inputs are decided: the host has the plant apply u(k) (shape (m,)) and answers
+    with :meth:`Coordinator.on_state` (only with an outside plant)."""
+
+    k: int
+    u: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -90,40 +78,22 @@ class RunFinished:
     reason: str
 
 
-@dataclass
-class StepRecord:
-    """Everything recorded about one step.
+@dataclass(frozen=True)
+class _AgentStep:
+    """One agent's part of a step record: its input u_i (m_i,), terminal state eta_i (n_i,),
+    cost, what its plan said, and the plan the step recorded for it, z (N+1, n_i), v (N, m_i)."""
 
-    Array shapes: x (n,), u (m,), alpha (n,), x_next (n,); per-agent lists have M entries.
-    ``r`` and ``r_next`` (M,) are the ellipsoid levels of the ellipsoid methods (None otherwise);
-    those methods record alpha = 0 and beta = NaN.
-    """
-
-    k: int
-    x: np.ndarray
     u: np.ndarray
-    alpha: np.ndarray
-    beta: float
-    x_next: np.ndarray
-    alpha_next: np.ndarray
-    beta_next: float
+    eta: np.ndarray
     J: float
-    J_agents: list[float]
-    S: float
-    rounds: int
-    max_change: float
-    status: list[str]
-    fallback: list[bool]
-    fallback_reason: list[str]
-    solve_time: list[float]
-    qp_iterations: list[int]
-    plans_z: list[np.ndarray]
-    plans_v: list[np.ndarray]
-    latency: list[float] = field(default_factory=list)
-    step_time: float = float("nan")
-    note: str = ""
-    r: np.ndarray | None = None
-    r_next: np.ndarray | None = None
+    status: str
+    fallback: bool
+    reason: str
+    solve_time: float
+    qp_iterations: int
+    latency: float
+    z: np.ndarray
+    v: np.ndarray
 
 
 class Coordinator:
@@ -133,16 +103,23 @@ class Coordinator:
     ----------
     system : CoupledSystem
     design : Design
-    plant : Plant
+    plant : Plant or None
+        The simulated plant, stepped in place; None for a plant outside (hardware, another
+        program): then :meth:`start` takes the measured x(0), each step ends with
+        :class:`ApplyInputs`, and the host answers with :meth:`on_state`.
     options : ProtocolOptions
     run_id : str
-    policy : dmpc.methods.policy.TerminalPolicy, optional
+    policy : TerminalPolicy, optional
         The method's terminal sets: what each agent is released and how the terminal
         parameters move (the paper's time-varying boxes by default).
+    clock : callable () -> float, optional
+        The host's clock in seconds, read when a plan is accepted, when the host opens a step
+        (:meth:`step_opened`) and when a step completes: the records' latency and step time.
+        Without one both are NaN.
     """
 
-    def __init__(self, system: CoupledSystem, design: Design, plant: Plant, options: ProtocolOptions,
-                 run_id: str, policy=None) -> None:
+    def __init__(self, system: CoupledSystem, design: Design, plant: Plant | None, options: ProtocolOptions,
+                 run_id: str, policy: TerminalPolicy | None = None, clock: Callable[[], float] | None = None) -> None:
         self.system = system
         self.design = design
         self.plant = plant
@@ -155,11 +132,12 @@ class Coordinator:
         self._K = K
         self._gamma = [s.A + s.B @ K[i] for i, s in enumerate(system.subsystems)]
         if policy is None:
-            from dmpc.methods import terminal_policy
-
             policy = terminal_policy("tv-box", system, design)
         self.policy = policy
-        self.terminal = policy.initial(plant.x)
+        self._clock = clock
+        self._x = np.array(system.x0 if plant is None else plant.x, dtype=float)  # with a plant outside
+        self._pending: dict | None = None  # the record of a step whose next state is awaited
+        self.terminal = policy.initial(self.x)
         self.k = 0
         self.iteration = 0
         self.finished = False
@@ -170,8 +148,9 @@ class Coordinator:
         self._step_latest: dict[int, Plan] = {}
         self._prev_round: dict[int, Plan] = {}
         self._round_status: dict[int, PlanMessage] = {}
+        self._received_at: dict[int, float] = {}  # per agent: when its plan in _round_status was accepted
+        self._opened_at = math.nan
         self._max_change = float("nan")
-        self.rejected: dict[str, int] = {}
         self.duplicates = 0
         self.inputs_refused: dict[str, int] = {}
         self._refused: dict[int, PlanMessage] = {}  # per agent: its last plan refused (kept until replaced)
@@ -189,29 +168,70 @@ class Coordinator:
         return self.terminal.beta
 
     # ------------------------------------------------------------------ inputs
-    def start(self) -> list:
-        """Actions that release step 0, round 0."""
+    @property
+    def x(self) -> np.ndarray:
+        """The measured state x(k), shape (n,)."""
+        return self.plant.x if self.plant is not None else self._x
+
+    def start(self, x0: np.ndarray | None = None) -> list:
+        """Actions that release step 0, round 0.
+
+        ``x0`` (shape (n,)): the state x(0) measured by a plant outside (required then; ignored
+        with a simulated plant). The terminal sets start from it.
+        """
+        if self.plant is None:
+            if x0 is None:
+                raise ValueError("a coordinator with a plant outside starts from the measured x(0)")
+            self._x = np.array(x0, dtype=float)
+            self.terminal = self.policy.initial(self._x)
+            self._note = self.terminal.note
         return self._release_round()
 
-    def on_plan(self, msg: PlanMessage, checked: bool = False) -> list:
-        """A plan arrived; returns the actions it triggers (possibly none).
+    def on_state(self, k: int, x: np.ndarray) -> list:
+        """The plant outside measured x(k) (shape (n,)) after the inputs of step k - 1: the step
+        is complete. Returns its actions; none for a state that was not awaited."""
+        if self._pending is None or k != self.k + 1:
+            return []
+        pending, self._pending = self._pending, None
+        self._x = np.array(x, dtype=float)
+        return self._complete_step(pending, self._x)
 
-        ``checked``: the caller has just run :meth:`check` on it and found no problem.
+    def on_plan(self, msg: PlanMessage) -> tuple[list, str | None]:
+        """A plan arrived: accept it, or drop it and say why.
+
+        Returns
+        -------
+        (actions, reason)
+            The actions it triggers (possibly none), and why it was dropped: None when it was
+            accepted or ignored as a copy (a second plan of an agent for the open round; the
+            first one counts, and ``duplicates`` counts the others), else the reason (see
+            :meth:`check`; ``malformed: <error>`` for a message the checks cannot even read).
         """
-        if self.finished:
-            return []
-        problem = None if checked else self.check(msg)
+        try:
+            problem = self.check(msg)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the run
+            problem = f"malformed: {type(exc).__name__}"
         if problem is not None:
-            self.rejected[problem] = self.rejected.get(problem, 0) + 1
-            return []
+            return [], problem
+        if self.finished:
+            return [], None
         i = self.index[msg.sender]
         if i in self._round or i in self._missed:
             self.duplicates += 1
-            return []
+            return [], None
         self._round[i] = msg
-        if msg.status in SOLVED_STATUSES and input_excess(self.system.subsystems[i].input_set, msg.v) > 0:
+        self._received_at[i] = self._now()
+        if msg.status in SOLVED and input_excess(self.system.subsystems[i].input_set, msg.v) > 0:
             self._refuse(i, msg)
-        return self._maybe_close_round()
+        return self._maybe_close_round(), None
+
+    def step_opened(self) -> None:
+        """The host has begun the open step (sent its release, or opened it with every agent
+        lost): the step's time runs from now."""
+        self._opened_at = self._now()
+
+    def _now(self) -> float:
+        return self._clock() if self._clock is not None else math.nan
 
     def _refuse(self, i: int, msg: PlanMessage) -> None:
         """Agent i's plan leaves U_i: it stands as the agent's answer for the round, but its
@@ -221,7 +241,7 @@ class Coordinator:
 
     def _usable(self, i: int, msg: PlanMessage | None) -> bool:
         """True if ``msg`` is a solved plan of agent i that was not refused."""
-        return msg is not None and msg.status in SOLVED_STATUSES and self._refused.get(i) is not msg
+        return msg is not None and msg.status in SOLVED and self._refused.get(i) is not msg
 
     def _fallback_reason(self, i: int, msg: PlanMessage | None) -> str:
         if msg is None:
@@ -276,13 +296,13 @@ class Coordinator:
         if i is None:
             return "unknown sender"
         if (msg.k, msg.iteration) != (self.k, self.iteration):
-            return "stale" if (msg.k, msg.iteration) < (self.k, self.iteration) else "future"
+            return STALE if (msg.k, msg.iteration) < (self.k, self.iteration) else "future"
         sub = self.system.subsystems[i]
         if msg.z.shape != (self.N + 1, sub.n) or msg.v.shape != (self.N, sub.m):
             return "wrong shape"
         if msg.status not in KNOWN_STATUSES:
             return "unknown status"
-        if msg.status in SOLVED_STATUSES:
+        if msg.status in SOLVED:
             size = magnitude(msg.z, msg.v, msg.cost)
             if not math.isfinite(size):
                 return "non-finite plan"
@@ -310,7 +330,7 @@ class Coordinator:
             centres, sizes = self.policy.release_all(self.terminal)
             # lost agents are skipped: their plans would not be used, and the first release after
             # their Ready tells them they are back
-            release = Release(run=self.run_id, k=self.k, iteration=self.iteration, x=self.plant.x.copy(),
+            release = Release(run=self.run_id, k=self.k, iteration=self.iteration, x=self.x.copy(),
                               centres=centres, sizes=sizes, assumed=assumed,
                               skipped=tuple(self.names[i] for i in sorted(self._lost)),
                               provided={self.names[j]: (plan.z, plan.v) for j, plan in self._provided.items()})
@@ -335,7 +355,7 @@ class Coordinator:
             self._round_status[i] = msg
             if self._usable(i, msg):
                 self._step_latest[i] = Plan(msg.k, msg.iteration, msg.z, msg.v)
-        infeasible = [self.names[i] for i, msg in self._round.items() if msg.status not in SOLVED_STATUSES]
+        infeasible = [self.names[i] for i, msg in self._round.items() if msg.status not in SOLVED]
         if self.k == 0 and self.iteration == 0 and infeasible and not self._missed:
             self._seed_from_centralized(infeasible)
         rounds_allowed = self.options.initial_iterations if self.k == 0 else self.options.iterations
@@ -351,11 +371,9 @@ class Coordinator:
     def _seed_from_centralized(self, infeasible: list[str]) -> None:
         """Replace the first round's plans by the centralised QP's plan
         (docs/algorithm.md, "Online step k, agent i", item 4)."""
-        from dmpc.centralized import CentralQP
-
         T, lower, upper = self.policy.joint_terminal(self.terminal)
         qp = CentralQP(self.system, self.design.gains.P_global(), self.N, terminal="rows", rows=T)
-        sol = qp.solve_rows(self.plant.x, lower, upper)
+        sol = qp.solve_rows(self.x, lower, upper)
         if not sol.status.feasible:
             self._add_note(f"k=0: round 0 infeasible for agents {', '.join(infeasible)} and the centralised QP is "
                            f"{sol.status.value} too")
@@ -377,7 +395,7 @@ class Coordinator:
         (its QP was infeasible), so the rounds go on. Agents without a plan in this round do not
         count (0 if none has one).
         """
-        x_parts = self.system.split_state(self.plant.x) if self.iteration == 0 else None
+        x_parts = self.system.split_state(self.x) if self.iteration == 0 else None
         change = 0.0
         for i, plan in self._step_latest.items():
             if self.iteration == 0:
@@ -393,51 +411,33 @@ class Coordinator:
 
     # ------------------------------------------------------------------ step end
     def _finalise_step(self) -> list:
-        system, M = self.system, self.system.M
-        x = self.plant.x.copy()
+        system = self.system
+        x = self.x.copy()
         x_parts = system.split_state(x)
-        u_parts, eta_parts, J_agents = [], [], []
-        status, fallback, reasons, solve_time, qp_iters, latency, plans_z, plans_v = ([] for _ in range(8))
-        for i in range(M):
-            sub = system.subsystems[i]
-            plan = self._step_latest.get(i)
-            msg = self._round_status.get(i)
-            status.append(msg.status if msg is not None else "missed")
-            solve_time.append(msg.solve_time if msg is not None else float("nan"))
-            qp_iters.append(msg.qp_iterations if msg is not None else 0)
-            latency.append(msg.sent_at if msg is not None else float("nan"))
-            if plan is not None:
-                u_parts.append(plan.v[0])  # concatenated into new arrays below
-                eta_parts.append(plan.z[-1])
-                J_agents.append(float(msg.cost) if self._usable(i, msg) else self._candidate_cost(i, plan))
-                self.last_plan[i] = plan
-                fallback.append(False)
-                reasons.append("")
-                plans_z.append(plan.z)
-                plans_v.append(plan.v)
-            else:
-                last = self.last_plan[i]
-                u_c = shifted_input(last, self.k, x_parts[i], self._gamma[i], self._K[i])
-                u_parts.append(project_onto(sub.input_set, u_c))
-                J_agents.append(self._candidate_cost(i, last) if last is not None else float("nan"))
-                fallback.append(True)
-                reasons.append(self._fallback_reason(i, msg))
-                z_c, v_c = self._candidate(i, last, x_parts[i])
-                eta_parts.append(self.policy.fallback_terminal(self.terminal, i, z_c[-1]))
-                plans_z.append(z_c)
-                plans_v.append(v_c)
-        u = np.concatenate(u_parts)
-        eta = np.concatenate(eta_parts)
+        agents = [self._agent_step(i, x_parts[i]) for i in range(system.M)]
+        u = np.concatenate([a.u for a in agents])
+        eta = np.concatenate([a.eta for a in agents])
         nxt = self.policy.update(self.terminal, eta)
         note = "; ".join(t for t in (self._note, nxt.note) if t)
         S = system.spread(x)
-        x_next = self.plant.step(u)
-        record = StepRecord(
-            k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta, x_next=x_next.copy(),
+        J_agents = [a.J for a in agents]
+        pending = dict(
+            k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta,
             alpha_next=nxt.alpha, beta_next=nxt.beta, J=float(np.sum(J_agents)), J_agents=J_agents, S=S,
-            rounds=self.iteration + 1, max_change=self._max_change, status=status, fallback=fallback,
-            fallback_reason=reasons, solve_time=solve_time, qp_iterations=qp_iters, plans_z=plans_z,
-            plans_v=plans_v, latency=latency, note=note, r=self.terminal.r, r_next=nxt.r)
+            rounds=self.iteration + 1, max_change=self._max_change, status=[a.status for a in agents],
+            fallback=[a.fallback for a in agents], fallback_reason=[a.reason for a in agents],
+            solve_time=[a.solve_time for a in agents], qp_iterations=[a.qp_iterations for a in agents],
+            plans_z=[a.z for a in agents], plans_v=[a.v for a in agents], latency=[a.latency for a in agents],
+            note=note, r=self.terminal.r, r_next=nxt.r, terminal=nxt)
+        if self.plant is None:
+            self._pending = pending
+            return [ApplyInputs(self.k, u)]
+        return self._complete_step(pending, self.plant.step(u))
+
+    def _complete_step(self, pending: dict, x_next: np.ndarray) -> list:
+        """The step's record with x(k+1) (shape (n,)), then the next step's release (or the end)."""
+        nxt = pending.pop("terminal")
+        record = StepRecord(x_next=x_next.copy(), step_time=self._now() - self._opened_at, **pending)
         actions: list = [StepCompleted(record)]
         self.terminal = nxt
         self.k += 1
@@ -445,6 +445,7 @@ class Coordinator:
         self._step_latest = {}
         self._prev_round = {}
         self._round_status = {}
+        self._received_at = {}
         self._note = ""
         if self.k >= self.options.steps:
             self.finished = True
@@ -452,6 +453,34 @@ class Coordinator:
             return actions
         actions.extend(self._release_round())
         return actions
+
+    def _agent_step(self, i: int, x_i: np.ndarray) -> _AgentStep:
+        """Agent i's part of the step: its plan of the step, or its fallback (the shifted
+        candidate of its last plan, input projected onto U_i), with what the record says of it.
+
+        The plan of the step becomes the agent's last plan."""
+        msg = self._round_status.get(i)
+        plan = self._step_latest.get(i)
+        if msg is None:
+            status, solve_time, qp_iterations, latency = "missed", math.nan, 0, math.nan
+        else:
+            status, solve_time, qp_iterations = msg.status, msg.solve_time, msg.qp_iterations
+            latency = self._received_at.get(i, math.nan) - msg.sent_at
+        if plan is not None:
+            self.last_plan[i] = plan
+            J = float(msg.cost) if self._usable(i, msg) else self._candidate_cost(i, plan)
+            return _AgentStep(u=plan.v[0], eta=plan.z[-1], J=J, status=status, fallback=False, reason="",
+                              solve_time=solve_time, qp_iterations=qp_iterations, latency=latency, z=plan.z,
+                              v=plan.v)
+        last = self.last_plan[i]
+        sub = self.system.subsystems[i]
+        u_c = shifted_input(last, self.k, x_i, self._gamma[i], self._K[i])
+        z_c, v_c = self._candidate(i, last, x_i)
+        return _AgentStep(u=project_onto(sub.input_set, u_c),
+                          eta=self.policy.fallback_terminal(self.terminal, i, z_c[-1]),
+                          J=self._candidate_cost(i, last) if last is not None else math.nan, status=status,
+                          fallback=True, reason=self._fallback_reason(i, msg), solve_time=solve_time,
+                          qp_iterations=qp_iterations, latency=latency, z=z_c, v=v_c)
 
     def _candidate(self, i: int, last: Plan | None, x_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The shifted candidate plan of agent i at this step, shapes (N+1, n_i), (N, m_i)."""

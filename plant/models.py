@@ -1,4 +1,5 @@
-"""Plants that are not the controllers' own model: other matrices, or a function of the user's.
+"""Plants that are not the controllers' own model: other matrices, or a function of the user's,
+and :func:`make_plant`, the plant a prepared run steps.
 
 Both keep the interface of :class:`~dmpc.plant.dynamics.Plant` that the coordinator uses: the
 state ``x``, the step index ``k`` and ``step(u) -> x_next``; the optional additive disturbance
@@ -10,11 +11,10 @@ from collections.abc import Callable
 
 import numpy as np
 
+from dmpc.plant.disturbance import DisturbanceSequence
 from dmpc.plant.dynamics import Plant
+from dmpc.run_spec import PlantFunction, Prepared
 from dmpc.system import CoupledSystem
-
-PlantFunction = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
-"""``f(x, u, k) -> x_next``: x (n,) and u (m,) in the global order, k the step index."""
 
 
 class PlantModelError(RuntimeError):
@@ -88,3 +88,14 @@ class FunctionPlant(MatrixPlant):
         if x_next.size != self.x.size:
             raise PlantModelError(f"{where}: it returned {x_next.size} numbers, the state has {self.x.size}")
         return self._advance(x_next)
+
+
+def make_plant(prepared: Prepared, x0: np.ndarray | None = None) -> Plant:
+    """The plant a run steps: its model (nominal, exact or the user's function) and disturbance."""
+    setup, system = prepared.plant, prepared.system
+    w = None if setup.disturbance is None else DisturbanceSequence(setup.disturbance)
+    if setup.function is not None:
+        return FunctionPlant(system, setup.function, setup.function_name, x0=x0, disturbance=w)
+    if setup.A is not None:
+        return MatrixPlant(system, setup.A, setup.B, x0=x0, disturbance=w)
+    return Plant(system, x0, disturbance=w)

@@ -4,8 +4,9 @@ Hosts the pure Coordinator on a bus. In ``realtime`` mode step k is released at
 ``t0 + k dt`` on the bus clock and each round has a deadline; in ``lockstep`` the next step
 follows as soon as the last plan is in.
 
-Whatever arrives is decoded and checked before it reaches the coordinator; invalid messages
-are dropped and counted per sender (``rejected``, in the run's summary), never raised.
+Whatever arrives is decoded here; a plan whose sender matches its key goes to the coordinator,
+which accepts it or says why not. Invalid messages are dropped and counted per sender
+(``rejected``, in the run's summary), never raised.
 """
 from __future__ import annotations
 
@@ -13,12 +14,14 @@ import logging
 from collections.abc import Callable
 
 from dmpc.bus import keys
-from dmpc.bus.codec import MAX_REASON, DecodeError, decode, encode
+from dmpc.bus.codec import MAX_REASON, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus
-from dmpc.bus.messages import PlanMessage, Ready, Stop, design_claim
-from dmpc.plant.barrier import (Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, StepRecord,
+from dmpc.bus.messages import PROTOCOL_VERSION, PlanMessage, Ready, Stop, design_claim
+from dmpc.plant.barrier import (STALE, ApplyInputs, Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted,
                                 input_excess)
+from dmpc.plant.plant_link import PlantLink
 from dmpc.security.rejects import Rejections
+from dmpc.steps import StepRecord
 
 log = logging.getLogger("dmpc.plant")
 NAMED_DESIGNS = 3  # differing designs spelled out in a start-up failure (the Stop reason is bounded)
@@ -42,6 +45,8 @@ class PlantNode:
     ----------
     bus : Bus
     coordinator : Coordinator
+        Built with this bus's clock (``clock=bus.now``), so that the records have the plans'
+        latency and the steps' times.
     design_digest : str
         Every agent's Ready must carry the same digest.
     on_step : callable StepRecord -> None
@@ -55,11 +60,15 @@ class PlantNode:
         The scenario's name, to say how an agent's differing design differs.
     telemetry : dmpc.watch.telemetry.Telemetry, optional
         Gets every completed step after ``on_step``, for observers (it never blocks).
+    plant_timeout : float or None
+        With a plant outside (the coordinator built with ``plant=None``): seconds to wait for the
+        state of each step (docs/protocol.md); x(0) is awaited with the agents' readiness.
     """
 
     def __init__(self, bus: Bus, coordinator: Coordinator, design_digest: str,
                  on_step: Callable[[StepRecord], None], mode: str = "lockstep", dt: float = 0.1,
-                 deadline: float | None = None, scenario: str = "", telemetry=None) -> None:
+                 deadline: float | None = None, scenario: str = "", telemetry=None,
+                 plant_timeout: float | None = None) -> None:
         self.bus = bus
         self.coordinator = coordinator
         self.run_id = coordinator.run_id
@@ -77,21 +86,29 @@ class PlantNode:
         self.started = False
         self.finished = False
         self.failure = ""
-        self.rejects = Rejections(log, "plant", bus.now, self.names)
+        sources = [] if coordinator.plant is not None else (
+            [keys.PLANT_ROLE] + [keys.sensor_role(name) for name in self.names])
+        # how this process names itself: the plant process hosts the coordinator unless the plant is outside
+        self.who = "plant" if coordinator.plant is not None else "coordinator"
+        self.rejects = Rejections(log, self.who, bus.now, self.names + sources)
         self.rejected: dict[str, int] = self.rejects.counts
+        self.other_versions: dict[str, int | None] = {}  # per agent or source: the protocol version it spoke
+        self.x0 = None  # x(0) from a plant outside, once complete
+        self.link: PlantLink | None = None
+        if coordinator.plant is None:
+            self.link = PlantLink(bus, coordinator.system, self.run_id, self.rejects, self._on_measured, self.fail,
+                                  timeout=plant_timeout if plant_timeout is not None else 10.0)
+            self.link.await_first()
         self._t0 = 0.0
         self._round_opened_at = 0.0
-        self._step_opened_at = 0.0
-        self._opened_step = -1  # the step whose time _step_opened_at starts
-        self._received_at: dict[str, float] = {}
-        self._sent_at: dict[str, float] = {}
+        self._opened_step = -1  # the last step whose time was started
         self._stop_payload: bytes | None = None
         bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan, hot=True)
         bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
         bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
 
     def announce(self) -> None:
-        self.bus.declare_alive(keys.alive(self.run_id, "plant"))
+        self.bus.declare_alive(keys.alive(self.run_id, keys.COORDINATOR_ROLE))
 
     # ------------------------------------------------------------------ receive
     def _reject(self, sender: str, why: str) -> None:
@@ -102,6 +119,8 @@ class PlantNode:
         try:
             return decode(payload)
         except DecodeError as exc:
+            if isinstance(exc, VersionMismatch) and name in self.names:
+                self.other_versions[name] = exc.version
             self._reject(name, str(exc))
             return None
 
@@ -117,7 +136,7 @@ class PlantNode:
             # dropped rather than fatal: anyone on the bus could send it; the run waits for a
             # matching Ready and, if none comes, its start-up failure names the difference
             self.mismatched[name] = msg
-            self._reject(name, f"design: {self._mismatch_text(name)}; this plant uses design "
+            self._reject(name, f"design: {self._mismatch_text(name)}; this {self.who} uses design "
                                f"{self._own_design()}; give every process the same scenario")
             return
         self.mismatched.pop(name, None)
@@ -149,14 +168,11 @@ class PlantNode:
         if len(differing) > NAMED_DESIGNS:
             shown.append(f"and {len(differing) - NAMED_DESIGNS} more")
         head = "a design differs" if len(differing) == 1 else f"{len(differing)} designs differ"
-        return (f"{head} from this plant's: {'; '.join(shown)}; this plant uses design {self._own_design()}; "
+        return (f"{head} from this {self.who}'s: {'; '.join(shown)}; this {self.who} uses design {self._own_design()}; "
                 "give every process the same scenario and --set options")
 
     def _on_alive(self, key: str, alive: bool) -> None:
-        role = keys.last_chunk(key)
-        if not role.startswith("agent-"):
-            return
-        name = role[len("agent-"):]
+        name = keys.subsystem_of(keys.last_chunk(key), keys.AGENT_PREFIX)
         if name not in self.names:
             return
         if alive:
@@ -176,24 +192,14 @@ class PlantNode:
         if not isinstance(msg, PlanMessage) or msg.sender != name:
             self._reject(name, "not a plan from its key's agent")
             return
-        try:
-            problem = self.coordinator.check(msg)
-        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the plant
-            problem = f"malformed: {type(exc).__name__}"
+        refused = self.coordinator.inputs_refused.get(name, 0)
+        actions, problem = self.coordinator.on_plan(msg)
         if problem is not None:
-            if problem not in ("stale",):  # late plans after a deadline are normal in realtime
+            if problem != STALE:  # late plans after a deadline are normal in realtime
                 self._reject(name, problem)
             return
-        if self.coordinator.has_plan(name):
-            self.coordinator.duplicates += 1  # the first copy counts; its timing too
-            return
-        now = self.bus.now()
-        refused = self.coordinator.inputs_refused.get(name, 0)
-        actions = self.coordinator.on_plan(msg, checked=True)
         if self.coordinator.inputs_refused.get(name, 0) > refused:
             self._log_refusal(name, msg, refused + 1)
-        self._received_at[name] = now
-        self._sent_at[name] = msg.sent_at
         self._carry_out(actions)
 
     def _log_refusal(self, name: str, msg: PlanMessage, count: int) -> None:
@@ -206,22 +212,44 @@ class PlantNode:
 
     # ------------------------------------------------------------------ act
     def _maybe_start(self) -> None:
-        if not self.started and self.ready >= set(self.names):
+        if not self.started and self.ready >= set(self.names) and (self.link is None or self.x0 is not None):
             self.started = True
             self._t0 = self.bus.now()
-            self._step_opened_at = self._t0
-            self._carry_out(self.coordinator.start())
+            self._carry_out(self.coordinator.start(self.x0))
+
+    def _on_measured(self, k: int, x) -> None:
+        """The plant outside measured x(k) (complete)."""
+        if not self.started:
+            self.x0 = x
+            self._maybe_start()
+        elif not self.finished:
+            self._carry_out(self.coordinator.on_state(k, x))
+
+    def startup_failure(self, timeout: float) -> str:
+        """Why the run did not start within ``timeout`` s: the agents (and plant) missing, the
+        designs and protocol versions that differ."""
+        missing = sorted(set(self.names) - self.ready)
+        parts = []
+        if missing:
+            parts.append(f"agents {', '.join(missing)} not ready within {timeout:g} s "
+                         f"(alive: {', '.join(sorted(self.alive)) or 'none'}; run id '{self.run_id}')")
+        if self.link is not None and self.x0 is None:
+            parts.append(self.link.describe_missing(0, f"within {timeout:g} s"))
+        versions = self.version_mismatch()
+        mismatch = self.design_mismatch(missing)
+        return f"{self.who}: " + "; ".join(([versions] if versions else []) + ([mismatch] if mismatch else []) + parts)
+
+    def version_mismatch(self) -> str:
+        """Which agents spoke another protocol version ("" if none)."""
+        if not self.other_versions:
+            return ""
+        said = [f"agent {name} speaks {'no protocol version' if v is None else f'protocol version {v}'}"
+                for name, v in sorted(self.other_versions.items())[:NAMED_DESIGNS]]
+        return f"{'; '.join(said)}; this coordinator speaks protocol version {PROTOCOL_VERSION}"
 
     def _carry_out(self, actions: list) -> None:
-        # finish the step's timing now, but write the record after the next releases are out
-        completed = []
-        for action in actions:
-            if isinstance(action, StepCompleted):
-                rec = action.record
-                rec.step_time = self.bus.now() - self._step_opened_at
-                rec.latency = [self._received_at.get(name, float("nan")) - self._sent_at.get(name, float("nan"))
-                               if rec.status[i] != "missed" else float("nan") for i, name in enumerate(self.names)]
-                completed.append(rec)
+        # write the records after the next releases are out
+        completed = [action.record for action in actions if isinstance(action, StepCompleted)]
         try:
             self._dispatch([a for a in actions if not isinstance(a, StepCompleted)])
         finally:
@@ -249,15 +277,19 @@ class PlantNode:
                 if self.deadline is not None:
                     k, r = action.k, action.iteration
                     self.bus.call_later(self.deadline, lambda k=k, r=r: self._carry_out(self.coordinator.on_deadline(k, r)))
+            elif isinstance(action, ApplyInputs):
+                self.link.apply(action.k, action.u)
             elif isinstance(action, RunFinished):
                 self._stop(action.reason)
 
     def _open_step(self, k: int) -> None:
-        self._step_opened_at = self.bus.now()
+        self.coordinator.step_opened()
         self._opened_step = k
 
     def _stop(self, reason: str) -> None:
         self.finished = True
+        if self.link is not None:
+            self.link.stop()
         msg = Stop(run=self.run_id, k=self.coordinator.k, reason=reason[:MAX_REASON])
         self._stop_payload = encode(msg)
         self.bus.publish(keys.control(self.run_id), self._stop_payload)

@@ -8,12 +8,13 @@ from dmpc.bus.interface import Bus
 from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
 from dmpc.methods import terminal_policy
 from dmpc.plant.barrier import Coordinator
+from dmpc.plant.models import make_plant
 from dmpc.plant.node import PlantNode
-from dmpc.records.agent_reports import LOGS, merge_agent_reports, report_path
-from dmpc.records.run_folder import STEP_LOG, RecordWriteError
+from dmpc.records.agent_reports import merge_agent_reports, report_path
+from dmpc.records.files import LOGS, STEP_LOG
+from dmpc.records.run_folder import RecordWriteError
 from dmpc.records.session import RunRecorder
-from dmpc.runtime.plant_setup import make_plant
-from dmpc.runtime.setup import Prepared
+from dmpc.run_spec import Prepared
 from dmpc.watch.telemetry import Telemetry, open_telemetry
 
 LINGER = 2.0
@@ -29,56 +30,57 @@ class PlantOutcome:
 
 
 def run_plant(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, startup_timeout: float,
-              runtime: str = "multi-process") -> PlantOutcome:
+              runtime: str = "multi-process", external_plant: bool = False,
+              plant_timeout: float = 10.0) -> PlantOutcome:
     """Wait for every agent, step the run to the end, write the records.
 
+    ``external_plant``: the plant is outside this process (docs/protocol.md); x(0) is awaited with
+    the agents, and each step's state for at most ``plant_timeout`` seconds.
     Ctrl-C (or SIGTERM) stops the agents and keeps every completed step in the run folder.
     """
     policy = terminal_policy(prepared.method, prepared.system, prepared.design)
-    coordinator = Coordinator(prepared.system, prepared.design, make_plant(prepared), prepared.protocol, run_id,
-                              policy=policy)
+    plant = None if external_plant else make_plant(prepared)
+    outside = {"plant": {"model": "outside"}} if external_plant else {}  # what the summary says of the plant
+    coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id,
+                              policy=policy, clock=bus.now)
     telemetry = open_telemetry(bus, run_id, prepared)
     node = PlantNode(bus, coordinator, prepared.digest, recorder.on_step, mode=prepared.mode, dt=prepared.dt,
-                     deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry)
+                     deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry,
+                     plant_timeout=plant_timeout if external_plant else None)
     node.announce()
     try:
         if not bus.run(until=lambda: node.started or node.finished, timeout=startup_timeout):
-            missing = sorted(set(prepared.names) - node.ready)
-            alive = sorted(node.alive)
-            reason = (f"agents {', '.join(missing)} not ready within {startup_timeout:g} s "
-                      f"(alive: {', '.join(alive) or 'none'}; run id '{run_id}')")
-            mismatch = node.design_mismatch(missing)
-            reason = f"plant: {mismatch}; {reason}" if mismatch else f"plant: {reason}"
+            reason = node.startup_failure(startup_timeout)
             node.fail(reason)
-            summary = recorder.complete(runtime=runtime, failure=reason, rejected=node.rejected,
+            summary = recorder.complete(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
                                         rejected_reasons=node.rejects.reasons)
             finish(bus, node, summary, telemetry, recorder)
             return PlantOutcome(EXIT_FAILED, reason, summary)
         bus.run(until=lambda: node.finished)
     except RecordWriteError as exc:
-        reason = f"plant: {exc}; the run stopped after {recorder.steps} steps, which are kept in {STEP_LOG}"
+        reason = f"{node.who}: {exc}; the run stopped after {recorder.steps} steps, which are kept in {STEP_LOG}"
         node.fail(reason)
-        summary = recorder.complete_if_possible(runtime=runtime, failure=reason, rejected=node.rejected,
+        summary = recorder.complete_if_possible(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
                                                 rejected_reasons=node.rejects.reasons,
                                                 inputs_refused=coordinator.inputs_refused)
         finish(bus, node, summary, telemetry, recorder)
         return PlantOutcome(EXIT_FAILED, reason, summary)
     except KeyboardInterrupt:
         node.abort("aborted")
-        summary = recorder.complete(runtime=runtime, aborted="interrupted", rejected=node.rejected,
+        summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", rejected=node.rejected,
                                     rejected_reasons=node.rejects.reasons, inputs_refused=coordinator.inputs_refused)
         finish(bus, node, summary, telemetry, recorder)
-        return PlantOutcome(EXIT_INTERRUPTED, f"plant: interrupted after {coordinator.k} steps", summary)
-    summary = recorder.complete(runtime=runtime, failure=node.failure or None, rejected=node.rejected,
+        return PlantOutcome(EXIT_INTERRUPTED, f"{node.who}: interrupted after {coordinator.k} steps", summary)
+    summary = recorder.complete(**outside, runtime=runtime, failure=node.failure or None, rejected=node.rejected,
                                 rejected_reasons=node.rejects.reasons, duplicates=coordinator.duplicates,
                                 inputs_refused=coordinator.inputs_refused)
     finish(bus, node, summary, telemetry, recorder)
     if node.failure:
-        return PlantOutcome(EXIT_FAILED, f"plant: {node.failure}", summary)
+        return PlantOutcome(EXIT_FAILED, f"{node.who}: {node.failure}", summary)
     if summary.get("verdict") == "failed":
         kinds = ", ".join(dict.fromkeys(f["kind"] for f in summary["failures"]))
-        return PlantOutcome(EXIT_VERDICT, f"plant: finished {coordinator.k} steps; verdict failed ({kinds})", summary)
-    return PlantOutcome(EXIT_OK, f"plant: finished {coordinator.k} steps", summary)
+        return PlantOutcome(EXIT_VERDICT, f"{node.who}: finished {coordinator.k} steps; verdict failed ({kinds})", summary)
+    return PlantOutcome(EXIT_OK, f"{node.who}: finished {coordinator.k} steps", summary)
 
 
 def finish(bus: Bus, node: PlantNode, summary: dict | None, telemetry: Telemetry | None,

@@ -13,11 +13,11 @@ import pytest
 
 from dmpc.agents.controller import AgentController
 from dmpc.bus.messages import PlanMessage
-from dmpc.plant.barrier import (Coordinator, ProtocolOptions, RoundOpened, RunFinished, SendRelease, StepCompleted,
-                                 input_excess)
+from dmpc.plant.barrier import Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, input_excess
 from dmpc.plant.dynamics import Plant
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.steps import ProtocolOptions
 from dmpc.system import LinearSet
 from dmpc.trajectories import Plan
 from tests.helpers.reference import A_II, B_II, K_PAPER, PAPER, U_BAR, block_diag, chain_matrices
@@ -62,6 +62,7 @@ class Driver:
         self.archive: dict[tuple[str, int, int], Plan] = {}
         self.releases = {}  # name -> its part of the latest release
         self.records = []
+        self.rejected: dict[str, int] = {}  # the coordinator's reasons for the plans it dropped
         self.finished = False
         self.handle(self.coord.start())
 
@@ -103,7 +104,14 @@ class Driver:
     def deliver(self, msg: PlanMessage) -> list:
         if msg.status in ("solved", "solved_inaccurate"):
             self.archive[(msg.sender, msg.k, msg.iteration)] = Plan(msg.k, msg.iteration, msg.z, msg.v)
-        return self.handle(self.coord.on_plan(msg))
+        return self.handle(self.offer(msg))
+
+    def offer(self, msg: PlanMessage) -> list:
+        """The coordinator's actions for ``msg``; the reason it gives for dropping it is tallied."""
+        actions, reason = self.coord.on_plan(msg)
+        if reason is not None:
+            self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        return actions
 
     def round(self, names=NAMES) -> list:
         """Every named agent answers the open round (all solved before any is delivered)."""
@@ -204,7 +212,7 @@ def test_run_finishes_after_the_last_step(prepared, controllers):
         d.step()
     assert d.finished and d.coord.finished
     assert [r.k for r in d.records] == [0, 1, 2]
-    assert d.coord.on_plan(d.message("1")) == []
+    assert d.offer(d.message("1")) == []
 
 
 # ---------------------------------------------------------------- rejected messages
@@ -229,7 +237,7 @@ def test_duplicate_plan_is_ignored(at_step_1):
     d.round(["2", "3", "4"])
     rec = d.records[-1]
     np.testing.assert_array_equal(rec.plans_z[0], m.z)  # the first one counts
-    assert d.coord.rejected == {}
+    assert d.rejected == {}
 
 
 @pytest.mark.parametrize("k_shift, it, reason", [(1, 0, "future"), (0, 1, "future"), (-1, 0, "stale")])
@@ -237,7 +245,7 @@ def test_wrong_step_or_round_is_rejected(at_step_1, k_shift, it, reason):
     d = at_step_1
     m = d.message("1", k=1 + k_shift, iteration=it)
     assert d.deliver(m) == []
-    assert d.coord.rejected == {reason: 1}
+    assert d.rejected == {reason: 1}
     d.round()  # the round is unaffected and completes with the proper plans
     assert d.records[-1].k == 1 and d.records[-1].fallback == [False] * 4
 
@@ -255,8 +263,8 @@ def test_unknown_sender_wrong_shape_wrong_run_non_finite(at_step_1):
         (d.message("1", z=bad_z), "non-finite plan"),
     ]
     for msg, _ in cases:
-        assert d.coord.on_plan(msg) == []
-    assert d.coord.rejected == {"unknown sender": 1, "wrong shape": 2, "wrong run": 1, "non-finite plan": 1}
+        assert d.offer(msg) == []
+    assert d.rejected == {"unknown sender": 1, "wrong shape": 2, "wrong run": 1, "non-finite plan": 1}
     assert d.coord.duplicates == 0
     d.round()
     assert d.records[-1].fallback == [False] * 4
@@ -289,7 +297,7 @@ def test_deadline_with_one_agent_missing(prepared, at_step_1):
     assert rec.beta_next == pytest.approx(sigma(prepared, rec.alpha_next), abs=1e-12)
     # a plan arriving after the deadline is stale
     assert d.deliver(late) == []
-    assert d.coord.rejected == {"stale": 1}
+    assert d.rejected == {"stale": 1}
     # the neighbours keep assuming the last plan of agent 2 (shifted again)
     assert d.releases["1"].assumed["2"] == (0, last.rounds - 1)
     # and a second miss shifts that plan twice
@@ -372,7 +380,7 @@ def test_plan_with_an_input_outside_U_i_is_refused_and_its_fallback_applied(at_s
         d.deliver(m)
     rec = d.records[-1]
     assert rec.k == 1
-    assert d.coord.inputs_refused == {"2": 1} and d.coord.rejected == {}
+    assert d.coord.inputs_refused == {"2": 1} and d.rejected == {}
     assert rec.fallback == [False, True, False, False]
     assert rec.status[1] == "solved" and rec.fallback_reason[1] == "input outside U_i"
     np.testing.assert_allclose(rec.u[1:2], shifted_projected(plan_2, 1, part(rec.x, 1), 1), atol=1e-12)

@@ -134,7 +134,7 @@ def test_truncated_payload_rejected(msg, cut):
 
 
 @pytest.mark.parametrize("mutate, match", [
-    (lambda b: b.update(schema=99), "schema"),
+    (lambda b: b.update(protocol=99), "protocol version 99; this process speaks protocol version 3"),
     (lambda b: b.update(type="bogus"), "unknown message type"),
     (lambda b: b.pop("cost"), "missing"),
     (lambda b: b.update(extra=1), "unexpected"),

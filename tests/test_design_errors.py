@@ -19,7 +19,7 @@ from scipy.linalg import solve_discrete_lyapunov
 from dmpc.design import DesignError, gains
 from dmpc.design.gains import lmi_gains, lqr_gains, verify_gains
 from dmpc.design.stabilisable import stuck_modes
-from dmpc.records.report import design_report
+from dmpc.records.tables import design_report
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import build_system, load_scenario
 from dmpc.system import CoupledSystem, LinearSet, Subsystem

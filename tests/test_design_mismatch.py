@@ -8,7 +8,7 @@ import pytest
 
 from dmpc.agents.controller import AgentController
 from dmpc.agents.node import AgentNode
-from dmpc.agents.process import _serve
+from dmpc.agents.process import Changes, serve
 from dmpc.bus import keys
 from dmpc.bus.codec import MAX_REASON, decode, encode
 from dmpc.bus.memory import MemoryBus
@@ -42,6 +42,12 @@ def agent_node(bus: MemoryBus, prepared, i: int) -> AgentNode:
     return node
 
 
+def serve_alone(node: AgentNode, bus: MemoryBus) -> tuple[int, str]:
+    ends: dict = {}
+    serve({node.name: node}, bus, RUN, 5.0, Changes(), ends)
+    return ends[node.name]
+
+
 def test_plant_and_agent_name_the_differing_design(tmp_path, paper, paper_n12):
     assert paper.digest != paper_n12.digest
     bus = MemoryBus()
@@ -56,12 +62,12 @@ def test_plant_and_agent_name_the_differing_design(tmp_path, paper, paper_n12):
     assert set(outcome.summary["rejected"]) == {"4"}
     assert outcome.summary["rejected_reasons"].keys() == {"design"}
     assert [a.design_refused for a in agents] == [False, False, False, True]
-    code, message = _serve(agents[3], bus, "4", RUN, 5.0)
+    code, message = serve_alone(agents[3], bus)
     assert code == 1
-    assert message.startswith(f"agent 4: its design differs from the plant's: this agent uses design "
+    assert message.startswith(f"agent 4: its design differs from the coordinator's: this agent uses design "
                               f"{paper_n12.digest} (scenario 'paper', horizon 12)")
-    code, message = _serve(agents[0], bus, "1", RUN, 5.0)
-    assert code == 1 and "its design differs" not in message and "the plant stopped the run" in message
+    code, message = serve_alone(agents[0], bus)
+    assert code == 1 and "its design differs" not in message and "the coordinator stopped the run" in message
 
 
 def test_a_forged_ready_with_another_design_does_not_stop_the_run(paper):

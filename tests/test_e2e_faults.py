@@ -188,7 +188,7 @@ def test_plant_killed_agents_exit_within_the_lease_and_steps_are_kept(procs, tmp
     assert max(exit_after.values()) <= LEASE + 2, exit_after
     for agent in agents.values():
         assert agent.returncode == 1
-        assert "lost the plant" in procs.log(agent) and "Traceback" not in procs.log(agent)
+        assert "lost the coordinator" in procs.log(agent) and "Traceback" not in procs.log(agent)
     assert not any(pid_alive(p.pid) for p in procs.procs)  # no orphan
 
     recs = read_steps(out)  # every line parses
@@ -205,7 +205,7 @@ def test_plant_killed_agents_exit_within_the_lease_and_steps_are_kept(procs, tmp
 def test_stopped_plant_agents_exit_after_the_lease_and_the_grace(procs, tmp_path):
     """SIGSTOP the plant: its liveliness goes after the lease, the agents wait the grace for it to
     come back, then exit with a message, without waiting on the stopped plant's sockets."""
-    from dmpc.agents.process import PLANT_GRACE
+    from dmpc.agents.process import COORDINATOR_GRACE
     from dmpc.bus.zenoh_bus import CLOSE_TIMEOUT
 
     out = tmp_path / "out"
@@ -213,7 +213,7 @@ def test_stopped_plant_agents_exit_after_the_lease_and_the_grace(procs, tmp_path
     assert wait_for(lambda: step_lines(out) >= 5, timeout=60), procs.log(plant)
     os.kill(plant.pid, signal.SIGSTOP)
     t0 = time.monotonic()
-    limit = LEASE + PLANT_GRACE + CLOSE_TIMEOUT + 1.5  # 1.5 s: detection slack and process exit
+    limit = LEASE + COORDINATOR_GRACE + CLOSE_TIMEOUT + 1.5  # 1.5 s: detection slack and process exit
     exit_after = {}
     try:
         while len(exit_after) < len(agents) and time.monotonic() - t0 < limit + 10:
@@ -225,10 +225,10 @@ def test_stopped_plant_agents_exit_after_the_lease_and_the_grace(procs, tmp_path
         os.kill(plant.pid, signal.SIGCONT)
     assert set(exit_after) == set(agents), f"agents still running {limit + 10:g} s after the plant hung"
     assert max(exit_after.values()) <= limit, exit_after
-    assert min(exit_after.values()) >= LEASE * 0.5 + PLANT_GRACE, exit_after  # not before the grace
+    assert min(exit_after.values()) >= LEASE * 0.5 + COORDINATOR_GRACE, exit_after  # not before the grace
     for agent in agents.values():
         assert agent.returncode == 1
-        assert "lost the plant" in procs.log(agent) and "Traceback" not in procs.log(agent)
+        assert "lost the coordinator" in procs.log(agent) and "Traceback" not in procs.log(agent)
 
 
 # ---------------------------------------------------------------------------- hung agent

@@ -142,6 +142,22 @@ def test_a_port_taken_before_the_plant_binds_it_is_retried(tmp_path, monkeypatch
     assert "Address already in use" in (tmp_path / "run" / "logs" / "plant.log").read_text()
 
 
+def test_a_plant_that_cannot_listen_exits_with_the_address_in_use_code(tmp_path):
+    import socket
+
+    from dmpc.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED
+
+    with socket.socket() as blocker:
+        blocker.bind(("127.0.0.1", 0))
+        blocker.listen()
+        taken = blocker.getsockname()[1]
+        res = run_cli("plant", "scenarios/paper.yaml", "--out", str(tmp_path / "run"), "--quiet",
+                      "--listen", f"tcp/127.0.0.1:{taken}", "--startup-timeout", "3")
+    assert res.returncode == EXIT_ADDRESS_IN_USE != EXIT_FAILED, res.stderr
+    [line] = res.stderr.strip().splitlines()
+    assert line.startswith("error: ") and "Address already in use" in line and f"127.0.0.1:{taken}" in line
+
+
 def test_free_ports_are_drawn_below_the_ephemeral_range():
     from dmpc.runtime.launcher import _ephemeral_range, free_port
 
@@ -214,6 +230,34 @@ def test_without_restart_a_crashed_agent_is_lost_and_the_run_goes_on(tmp_path):
     assert lost_from >= 10 and [k for k, _ in summary["fallback_steps"]] == list(range(lost_from, 40))
     assert "fallbacks" in [w["kind"] for w in summary["warnings"]]
     assert summary["agent_reports_missing"] == ["4"]
+    assert proc.returncode == (0 if summary["verdict"] == "ok" else 3)
+    _no_orphans(out)
+
+
+def test_a_killed_host_process_is_the_loss_of_its_agents_and_the_run_goes_on(tmp_path):
+    """SIGKILL the process that serves agents 3 and 4 (``--agents-per-process 2``): the plant sees
+    both liveliness tokens go and falls back for both from then on, as for lost agents; the other
+    host's agents never fall back."""
+    out = tmp_path / "run"
+    proc = _start_run(out, "--steps", "40", "--agents-per-process", "2")
+    try:
+        _kill_at(out, [("host-2", 10)])
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 40, stderr
+    assert summary["launcher"]["lost"] == ["host-2"] and summary["launcher"]["crashes"] == {"host-2": [-9]}
+    by_agent: dict[str, list[int]] = {}
+    for k, name in summary["fallback_steps"]:
+        by_agent.setdefault(name, []).append(k)
+    assert set(by_agent) == {"3", "4"}
+    for steps in by_agent.values():  # from the loss to the end
+        assert steps[0] >= 10 and steps == list(range(steps[0], 40)), steps
+    notes = " ".join(summary["notes"])
+    assert "agent 3 lost" in notes and "agent 4 lost" in notes
+    assert summary["agent_reports_missing"] == ["3", "4"] and set(summary["agents"]) == {"1", "2"}
     assert proc.returncode == (0 if summary["verdict"] == "ok" else 3)
     _no_orphans(out)
 

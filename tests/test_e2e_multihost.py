@@ -271,3 +271,37 @@ def test_paper_across_namespaces_equals_simulate(procs, lab, paper_simulated, tm
             assert peers & (others - {lab.hosts[f"agent{name}"], lab.hosts["plant"]}), (name, peers)
     print(f"{deployment}: paper example across {len(lab.hosts)} namespaces in {elapsed:.1f} s; agents linked to "
           + "; ".join(f"{name}: {sorted(peers)}" for name, peers in linked.items()))
+
+
+def test_two_machines_each_hosting_two_agents_equal_simulate(procs, lab, paper_simulated, tmp_path):
+    """Agents 1 and 2 served by one process on one host, 3 and 4 by one on another, the plant on a
+    third (the plant as the meeting point, as docs/deploy.md describes a host per machine)."""
+    plant_ep = f"tcp/{lab.hosts['plant']}:7447"
+    out = tmp_path / "out"
+    common = ["--run-id", "netns-hosts", "--design", str(paper_simulated / "design.json"), "--startup-timeout", "60"]
+    plant = procs.start_in("plant", "plant", "scenarios/paper.yaml", "--out", str(out), "--quiet",
+                           "--listen", "tcp/0.0.0.0:7447", *common)
+    machines = {"agent1": ("1", "2"), "agent2": ("3", "4")}
+    hosts = {role: procs.start_in(role, "agent", "scenarios/paper.yaml", *[a for n in names for a in ("--id", n)],
+                                  "--connect", plant_ep, "--report", str(tmp_path / f"{role}-{{id}}.json"), *common)
+             for role, names in machines.items()}
+    assert wait_for(lambda: step_lines(out) >= 1 or plant.poll() is not None, timeout=90), procs.log(plant)
+    linked: dict[str, set[str]] = {role: set() for role in machines}
+    deadline = time.monotonic() + 120
+    while plant.poll() is None and time.monotonic() < deadline:
+        for role, proc in hosts.items():
+            linked[role] |= _established_peers(proc.pid)
+        time.sleep(0.05)
+    plant.wait(timeout=10)
+    for proc in hosts.values():
+        proc.wait(timeout=20)
+    assert plant.returncode == 0, procs.log(plant)
+    assert all(p.returncode == 0 for p in hosts.values()), [procs.log(p) for p in hosts.values()]
+    assert max_abs_diff(paper_simulated, out) <= 1e-9
+    for role, names in machines.items():  # one process, one report per agent, each finished
+        for name in names:
+            assert f"agent {name}: finished" in procs.log(hosts[role])
+            assert (tmp_path / f"{role}-{name}.json").is_file()
+    # one session per machine: links to the plant's host and to the other machine, nothing else
+    assert linked["agent1"] == {lab.hosts["plant"], lab.hosts["agent2"]}, linked
+    assert linked["agent2"] == {lab.hosts["plant"], lab.hosts["agent1"]}, linked

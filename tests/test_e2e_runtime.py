@@ -32,14 +32,34 @@ def test_run_equals_simulate(tmp_path, scenario, extra):
     # same files, same keys
     files = {p.name for p in sim.iterdir()}
     assert files <= {p.name for p in multi.iterdir()}
-    launcher_only = {"launcher", "agent_reports_missing"}  # what dmpc run adds about its processes
+    launcher_only = {"launcher", "agent_reports_missing", "startup_s"}  # what dmpc run adds about its processes
     assert set(json.loads((sim / "summary.json").read_text())) == set(summary) - launcher_only
     assert summary["launcher"] == {"restarts": {}, "lost": [], "crashes": {}}
+    assert 0 < summary["startup_s"] < 60  # processes started to the first release
     assert summary["agent_reports_missing"] == []
     assert set(json.loads((sim / "design.json").read_text())) == set(json.loads((multi / "design.json").read_text()))
     assert set(np.load(sim / "trajectory.npz").files) == set(np.load(multi / "trajectory.npz").files)
     processes = json.loads((multi / "processes.json").read_text())
     assert set(processes) == {"plant"} | {f"agent-{i}" for i in (range(1, 5) if "paper" in scenario else range(1, 9))}
+    assert not any(pid_alive(pid) for pid in processes.values())
+
+
+def test_agents_hosted_two_to_a_process_equal_simulate(tmp_path, paper_simulated):
+    """``--agents-per-process 2``: two processes serve the four agents, each on one Zenoh session,
+    and the trajectory is the in-process one; every agent still reports for itself."""
+    out = tmp_path / "hosted"
+    res = run_cli("run", "scenarios/paper.yaml", "--out", str(out), "--quiet", "--agents-per-process", "2")
+    assert res.returncode == 0, res.stderr + res.stdout
+    assert max_abs_diff(paper_simulated, out) <= 1e-9
+    processes = json.loads((out / "processes.json").read_text())
+    assert set(processes) == {"plant", "host-1", "host-2"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["launcher"]["hosts"] == {"host-1": ["1", "2"], "host-2": ["3", "4"]}
+    assert summary["agent_reports_missing"] == []
+    assert {name: entry["exit_code"] for name, entry in summary["agents"].items()} == dict.fromkeys("1234", 0)
+    assert all(entry["solves"] > 0 and entry["rejected"] == {} for entry in summary["agents"].values())
+    assert summary["fallbacks"] == 0 and summary["startup_s"] > 0 and "start-up" in res.stdout
+    assert "agent 1: finished" in (out / "logs" / "host-1.log").read_text()
     assert not any(pid_alive(pid) for pid in processes.values())
 
 
@@ -78,7 +98,7 @@ def test_agent_without_plant_exits_with_message(procs):
     elapsed = time.monotonic() - t0
     assert agent.returncode == 1
     text = procs.log(agent)
-    assert "no release from the plant within 3 s" in text and "plant" in text
+    assert "no release from the coordinator within 3 s" in text and "coordinator" in text
     assert "Traceback" not in text
     assert elapsed < 15
 
@@ -137,7 +157,7 @@ def test_peers_only(procs, tmp_path, paper_simulated):
 
 
 def test_plant_and_agents_from_a_run_bundle(procs, tmp_path, paper_simulated):
-    from dmpc.runtime.bundle import write_bundle
+    from dmpc.run_bundle import write_bundle
     from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
 
@@ -184,7 +204,7 @@ def test_failed_child_stops_every_process(tmp_path):
 def test_agent_with_another_design_is_named_by_plant_and_agent(procs, tmp_path):
     """Agent 4 started with ``--set horizon=12`` against a plant of the scenario as it is: the
     plant fails at its start-up timeout naming agent 4 and both designs, and agent 4 says that
-    its design differs from the plant's."""
+    its design differs from the coordinator's."""
     from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
 
@@ -208,6 +228,6 @@ def test_agent_with_another_design_is_named_by_plant_and_agent(procs, tmp_path):
     assert "agents 4 not ready within 15 s" in text and "Traceback" not in text
     assert agents[3].returncode == 1
     line = procs.log(agents[3])
-    assert "agent 4: its design differs from the plant's" in line and agent_digest in line and plant_digest in line
+    assert "agent 4: its design differs from the coordinator's" in line and agent_digest in line and plant_digest in line
     for a in agents[:3]:
         assert a.returncode == 1 and "its design differs" not in procs.log(a)

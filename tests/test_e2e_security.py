@@ -54,7 +54,7 @@ def paper(tmp_path_factory):
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory, paper):
     """A certificate directory for the paper's roles (any run id), and agent-1 from another CA."""
-    from dmpc.runtime.bundle import load_bundle
+    from dmpc.run_bundle import load_bundle
     from dmpc.security.certs import make_certificates, make_run_security
 
     base = tmp_path_factory.mktemp("certs")
@@ -154,9 +154,10 @@ def test_clients_without_a_valid_certificate_cannot_connect(procs, tmp_path, pap
                          "--other", str(certs["other"]), "--target", target, log="probe.log")
     result = read_line(probe, "PROBE ", timeout=40)
     assert wait_exit(procs, probe, 10, "probe") == 0
-    # the valid client is in and sees the bus: the plant's token, or (router) another client's
+    # the valid client is in and sees the bus: the coordinator's token (the plant process hosts
+    # it), or (router) another client's
     assert result["valid"]["opened"], result
-    assert result["valid"]["seen"] == (["plant"] if target == "plant" else ["agent-2"]), result
+    assert result["valid"]["seen"] == (["coordinator"] if target == "plant" else ["agent-2"]), result
     assert result["valid_raw"]["opened"] and result["valid_raw"]["seen"] == result["valid"]["seen"], result
     for name in ("no_cert", "other_ca", "tcp"):
         assert not result[name]["opened"], f"{name} got a session: {result}"
@@ -255,7 +256,7 @@ def test_run_survives_a_flood_of_garbage(procs, tmp_path, paper):
     assert sum(summary["rejected_reasons"].values()) == plant_drops
     for name, report in agent_reports.items():
         assert report["exit_code"] == 0 and report["solves"] == clean_solves(paper, name), (name, report)
-        assert set(report["rejected"]) <= {"plant", "1", "2", "3", "4", "(unknown)"}
+        assert set(report["rejected"]) <= {"coordinator", "1", "2", "3", "4", "(unknown)"}
     # throttled logging: at most one line per sender per second of flooding (plus the first)
     lines = re.findall(r"plant: dropped a message from (\S+)", procs.log(plant))
     per_sender = {s: lines.count(s) for s in set(lines)}
@@ -361,7 +362,7 @@ def _probe(argv: list[str]) -> int:
             other = open_session(session_config(mode="client", connect=[args.connect],
                                                 tls=tls_files(args.tls, "agent-2")), timeout=10)
             token = other.liveliness().declare_token(keys.alive(args.run, "agent-2"))  # noqa: F841 - kept alive
-        want = "plant" if args.target == "plant" else "agent-2"
+        want = "coordinator" if args.target == "plant" else "agent-2"
         deadline = time.monotonic() + 10
         while want not in seen and time.monotonic() < deadline:
             time.sleep(0.02)
@@ -496,7 +497,7 @@ def _rogue(argv: list[str]) -> int:
     from dmpc.bus.codec import DecodeError, decode, encode
     from dmpc.bus.messages import Release, Stop
     from dmpc.bus.session import open_session, session_config
-    from dmpc.runtime.bundle import load_bundle
+    from dmpc.run_bundle import load_bundle
     from dmpc.security.files import tls_files
 
     p = argparse.ArgumentParser(prog="rogue")
@@ -525,7 +526,7 @@ def _rogue(argv: list[str]) -> int:
         role = keys.last_chunk(str(sample.key_expr))
         if sample.kind == zenoh.SampleKind.PUT:
             alive.add(role)
-        elif role == "plant":
+        elif role == keys.COORDINATOR_ROLE:
             gone.set()
 
     def on_plan(sample):  # replay every plan of the run once (the rogue's own puts are not seen here)
@@ -550,7 +551,7 @@ def _rogue(argv: list[str]) -> int:
     else:
         entities.append(session.declare_subscriber(keys.release(R), on_release))
     deadline = time.monotonic() + 20
-    while "plant" not in alive and time.monotonic() < deadline:
+    while keys.COORDINATOR_ROLE not in alive and time.monotonic() < deadline:
         time.sleep(0.01)
     print("ROGUE READY", flush=True)
 

@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dmpc.bus.codec import MAX_NAME, DecodeError, decode, encode
-from dmpc.bus.messages import SCHEMA_VERSION, PlanMessage, Ready, Release, Stop
+from dmpc.bus.messages import PROTOCOL_VERSION, PlanMessage, Ready, Release, Stop
 
 FUZZ = settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FUZZ_NESTED = settings(FUZZ, max_examples=500)  # slower to generate
@@ -156,5 +156,5 @@ def test_every_valid_payload_decodes():
 
 def test_schema_version_and_unknown_types_are_refused():
     body = msgpack.unpackb(VALID[0], raw=False)
-    for change in ({"schema": SCHEMA_VERSION + 1}, {"schema": None}, {"type": "plan2"}, {"type": ["plan"]}):
+    for change in ({"protocol": PROTOCOL_VERSION + 1}, {"protocol": None}, {"type": "plan2"}, {"type": ["plan"]}):
         assert decode_or_reject(msgpack.packb({**body, **change}, use_bin_type=True)) is None

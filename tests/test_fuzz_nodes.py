@@ -20,14 +20,15 @@ from dmpc.agents.node import AgentNode
 from dmpc.bus import keys
 from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.memory import MemoryBus
-from dmpc.bus.messages import PLANT, PlanMessage, Ready, Release, Stop
+from dmpc.bus.messages import COORDINATOR, PlanMessage, Ready, Release, Stop
 from dmpc.mpc_qp import QPStatus
-from dmpc.plant.barrier import Coordinator, ProtocolOptions, StepCompleted
+from dmpc.plant.barrier import Coordinator, StepCompleted
 from dmpc.plant.dynamics import Plant
 from dmpc.plant.node import PlantNode
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
 from dmpc.security.rejects import UNKNOWN
+from dmpc.steps import ProtocolOptions
 from dmpc.trajectories import Plan
 
 RUN = "fz"
@@ -149,6 +150,7 @@ def guarded_coordinator(prepared, steps: int = 6) -> tuple[Coordinator, GuardedP
 def test_coordinator_survives_hostile_plans(prepared, data):
     coord, plant = guarded_coordinator(prepared)
     records = []
+    reasons = set()  # why the coordinator dropped plans
 
     def handle(actions):
         for action in actions:
@@ -171,7 +173,10 @@ def test_coordinator_survives_hostile_plans(prepared, data):
                 msg = decode(payload)
             except DecodeError:
                 msg = _unchecked_plan(payload)  # what the codec refuses goes to the barrier's own checks
-            handle(coord.on_plan(msg))
+            actions, reason = coord.on_plan(msg)
+            handle(actions)
+            if reason is not None:
+                reasons.add(reason)
         elif kind == "deadline":
             k, it = coord.k + data.draw(st.integers(-1, 1)), coord.iteration + data.draw(st.integers(-1, 1))
             handle(coord.on_deadline(k, it))
@@ -185,7 +190,7 @@ def test_coordinator_survives_hostile_plans(prepared, data):
         for arr in (rec.x_next, rec.alpha_next, rec.u):
             assert np.isfinite(arr).all()
         assert np.isfinite(rec.beta_next)
-    assert set(coord.rejected) <= {"wrong run", "unknown sender", "stale", "future", "wrong shape", "unknown status",
+    assert reasons <= {"wrong run", "unknown sender", "stale", "future", "wrong shape", "unknown status",
                                    "non-finite plan", "out of range"}
 
 
@@ -242,6 +247,10 @@ class GuardedController:
 
     def __getattr__(self, name):
         return getattr(self.controller, name)
+
+    def answer(self, *args, **kwargs):
+        """The controller's own answer, with its solve going through the check below."""
+        return AgentController.answer(self, *args, **kwargs)
 
     def solve(self, k, states, alpha, beta, plans):
         c, system, N = self.controller, self.prepared.system, self.prepared.design.horizon
@@ -330,7 +339,7 @@ def test_agent_node_survives_hostile_messages(prepared, data):
     sent = []
     bus.subscribe(keys.plan(RUN, name), lambda key, payload: sent.append(payload))
     node = AgentNode(bus, controller, NAMES, RUN, "digest", plan_wait=data.draw(st.sampled_from([None, 0.5])))
-    bus.declare_alive(keys.alive(RUN, "plant"))
+    bus.declare_alive(keys.alive(RUN, keys.COORDINATOR_ROLE))
     node.announce()
     bus.run(lambda: False, timeout=0.1)
     k, it = 0, 0
@@ -356,10 +365,10 @@ def test_agent_node_survives_hostile_messages(prepared, data):
             key, payload = data.draw(st.sampled_from(history))
         elif kind == "stop":
             stop = Stop(run=data.draw(st.sampled_from([RUN, "other"])), k=data.draw(st.sampled_from([0, k, 10**6])),
-                        reason="finished", sender=data.draw(st.sampled_from([PLANT, "1", "2"])))
+                        reason="finished", sender=data.draw(st.sampled_from([COORDINATOR, "1", "2"])))
             key, payload = keys.control(RUN), encode(stop)
         elif kind == "alive":
-            role = data.draw(st.sampled_from(["plant", "agent-1", "agent-3", "agent-x" * 9]))
+            role = data.draw(st.sampled_from([keys.COORDINATOR_ROLE, "agent-1", "agent-3", "agent-x" * 9]))
             (bus.declare_alive if data.draw(st.booleans()) else bus.drop_alive)(keys.alive(RUN, role))
             bus.run(lambda: False, timeout=0.1)
             continue
@@ -371,7 +380,7 @@ def test_agent_node_survives_hostile_messages(prepared, data):
         bus.publish(key, payload)
         bus.run(lambda: False, timeout=1.0)  # deliveries and the plan-wait timer; any exception escapes here
     assert controller.violations == []
-    assert set(node.rejected) <= {PLANT, "1", "3"}
+    assert set(node.rejected) <= {COORDINATOR, "1", "3"}
     assert len(node.peers_alive) <= 3
     # every plan sent is decodable, and no (k, round) is answered twice
     answered = [(m.k, m.iteration) for m in map(decode, sent)]

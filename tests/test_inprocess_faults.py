@@ -156,3 +156,12 @@ def test_plans_outside_U_i_are_refused_counted_and_fall_back(tmp_path, monkeypat
     assert [s["fallback_reason"][1] for s in steps if s["k"] in (3, 7)] == ["input outside U_i"] * 2
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["inputs_refused"] == {"2": 2}
     assert summary["final_state_norm_inf"] < 1e-2
+
+
+def test_a_fault_plan_reads_back_from_its_json_as_the_same_plan():
+    plan = FaultPlan(default=LinkFault(delay_ms=2.0, jitter_ms=0.5), seed=7,
+                     links=(("2", "plant", LinkFault(loss=0.25)), ("plant", "3", LinkFault(delay_ms=10.0))))
+    again = FaultPlan.from_json(json.loads(json.dumps(plan.to_json())))
+    assert again == plan and again.link("2", "plant").loss == 0.25 and again.link("1", "plant") == plan.default
+    with pytest.raises(TypeError):
+        FaultPlan.from_json({**plan.to_json(), "default": {"delay": 1.0}})

@@ -11,7 +11,7 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
-from dmpc.centralized import CentralQP
+from dmpc.central_qp import CentralQP
 from dmpc.evaluation.compare import compare
 from dmpc.methods import METHOD_NAMES, method_spec, terminal_policy
 from dmpc.methods.inscribed import inscribed_rows, polytope_vertices, unit_ball_polytope
@@ -21,10 +21,11 @@ from dmpc.methods.terminal_rows import InscribedTerminal
 from dmpc.plant.barrier import Coordinator
 from dmpc.plant.dynamics import Plant
 from dmpc.records.session import RunRecorder
-from dmpc.runtime.bundle import load_bundle, write_bundle
+from dmpc.run_bundle import load_bundle, write_bundle
+from dmpc.run_spec import design_digest
 from dmpc.runtime.direct import DirectLoop
 from dmpc.runtime.inprocess import record_run, simulate
-from dmpc.runtime.setup import design_digest, prepare
+from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
 from tests.helpers.reference import P_PAPER, PAPER, Q_I, R_I, U_BAR, block_diag, chain_matrices, chain_x0
 
@@ -82,7 +83,7 @@ def _records(prepared, method, steps=30, x0=None):
     if method_spec(method).distributed:
         loop = DirectLoop(prepared.system, prepared.design, prepared.protocol, method)
     else:
-        from dmpc.runtime.central import CentralLoop
+        from dmpc.runtime.central_loop import CentralLoop
 
         loop = CentralLoop(prepared.system, prepared.design)
     recs = []

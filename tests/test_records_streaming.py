@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from dmpc.records import columns as columns_module
-from dmpc.records.columns import ROWS_FILE, StepColumns, write_npz
+from dmpc.records.columns import StepColumns, write_npz
+from dmpc.records.files import ROWS
 from dmpc.records.run_folder import RecordWriteError, RunFolder, trajectory_arrays
 from dmpc.records.step_log import arrays_from_log, read_step_log
 from dmpc.runtime.inprocess import simulate
@@ -27,7 +28,7 @@ def paper_records():
 
 def test_rows_on_disk_give_the_same_arrays_as_in_memory(tmp_path, paper_records):
     prepared, records = paper_records
-    on_disk = StepColumns(prepared.system, tmp_path / ROWS_FILE)
+    on_disk = StepColumns(prepared.system, tmp_path / ROWS)
     for rec in records:
         on_disk.add(rec)
     on_disk.close()
@@ -48,10 +49,10 @@ def test_memory_does_not_hold_the_steps(tmp_path, paper_records):
         folder.append_step(rec)
     assert not hasattr(folder, "records")
     assert folder.columns._rows == [] and folder.columns.last is records[-1]
-    row_bytes = (tmp_path / "run" / ROWS_FILE).stat().st_size
+    row_bytes = (tmp_path / "run" / ROWS).stat().st_size
     assert row_bytes == len(records) * folder.columns.width * 8
     summary = folder.finish()
-    assert not (tmp_path / "run" / ROWS_FILE).exists()
+    assert not (tmp_path / "run" / ROWS).exists()
     with np.load(tmp_path / "run" / "trajectory.npz") as npz:
         expected = trajectory_arrays(prepared.system, records)
         for key in expected:
@@ -80,7 +81,7 @@ def test_a_failed_row_write_is_cut_back_and_named(tmp_path, paper_records):
     folder.columns._file = _Failing(folder.columns._file)  # some bytes get through, then the disk is full
     with pytest.raises(RecordWriteError, match=r"cannot write .*\.steps\.f64: No space left on device"):
         folder.append_step(records[5])
-    assert (tmp_path / "run" / ROWS_FILE).stat().st_size == 5 * folder.columns.width * 8
+    assert (tmp_path / "run" / ROWS).stat().st_size == 5 * folder.columns.width * 8
     log = read_step_log(tmp_path / "run" / "steps.jsonl")
     assert [s["k"] for s in log.steps] == [0, 1, 2, 3, 4] and not log.partial
 
@@ -125,3 +126,25 @@ def test_report_draws_a_run_that_ended_before_its_arrays_from_the_log(tmp_path, 
     assert code == 0
     assert "drawn from the 29 steps of steps.jsonl" in stdout and "incomplete and is skipped" in stdout
     assert len(list((out / "figures").glob("*.png"))) == 5
+
+
+def test_the_files_a_run_was_loaded_from_are_not_written_again(tmp_path, paper_records):
+    """``dmpc run`` writes scenario.yaml and design.json, then starts the plant on them: the
+    plant's recorder leaves them as they are; given elsewhere, it writes its own copies."""
+    from dmpc.records.files import DESIGN, SCENARIO
+    from dmpc.records.session import RunRecorder
+
+    prepared, _ = paper_records
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in (SCENARIO, DESIGN):
+        (run / name).write_text(f"as the launcher wrote {name}\n")
+    roundabout = tmp_path / ".." / tmp_path.name / "run" / DESIGN  # the same file by another path
+    with RunRecorder(run, prepared, show_progress=False, sources=[run / SCENARIO, roundabout]):
+        pass
+    assert [(run / name).read_text() for name in (SCENARIO, DESIGN)] == \
+        [f"as the launcher wrote {name}\n" for name in (SCENARIO, DESIGN)]
+    with RunRecorder(tmp_path / "other", prepared, show_progress=False, sources=[run / SCENARIO, run / DESIGN]):
+        pass
+    assert json.loads((tmp_path / "other" / DESIGN).read_text())["digest"] == prepared.digest
+    assert "subsystems" in (tmp_path / "other" / SCENARIO).read_text()

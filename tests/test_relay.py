@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from dmpc.runtime.relay import Relay, RelayError, format_address, parse_address
+from dmpc.bus.relay import Relay, RelayError, format_address, parse_address
 from tests.e2e_helpers import DMPC, ROOT
 
 

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dmpc import cli, report
+from dmpc import cli
+from dmpc import figures as report
 from tests.helpers.cli import call
 
 FIGURE_FILES = [f"{name}.png" for name in report.FIGURES]
@@ -265,16 +266,6 @@ def test_a_method_without_its_run_folder_is_skipped_and_named(tmp_path, comparis
 
 
 # ----------------------------------------------------------------------------- the real methods
-def _methods() -> tuple[str, ...]:
-    try:
-        from dmpc.methods import METHOD_NAMES
-    except ImportError:
-        return ()
-    return METHOD_NAMES
-
-
-@pytest.mark.skipif(not {"ellipsoid", "ellipsoid-adaptive", "centralized"} <= set(_methods()),
-                    reason="the ellipsoid and centralised methods are not available")
 def test_comparison_of_the_real_methods(tmp_path, paper_run, monkeypatch, capsys):
     """Run folders of the real methods (options.method), gathered by hand into a comparison folder."""
     shutil.copytree(paper_run, tmp_path / "tv-box", ignore=shutil.ignore_patterns("figures"))
@@ -295,7 +286,6 @@ def test_comparison_of_the_real_methods(tmp_path, paper_run, monkeypatch, capsys
         assert len(report.draw_run(tmp_path / method)) == 5
 
 
-@pytest.mark.skipif(not hasattr(cli, "compare"), reason="dmpc compare is not available")
 def test_report_on_the_output_of_dmpc_compare(tmp_path, monkeypatch, capsys):
     out = tmp_path / "compare"
     code, _, err = call(monkeypatch, capsys, "compare", "scenarios/paper.yaml", "--out", str(out), "--steps", "12",

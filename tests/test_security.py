@@ -31,7 +31,8 @@ from tests.helpers.cli import call, one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = str(ROOT / "scenarios" / "paper.yaml")
-ROLES = ["router", "plant", "agent-1", "agent-2", "agent-3", "agent-4", "observer"]
+ROLES = ["router", "coordinator", "plant", "agent-1", "agent-2", "agent-3", "agent-4", "sensor-1", "sensor-2", "sensor-3",
+         "sensor-4", "observer"]
 # the paper's chain 1-2-3-4: N_I without I
 NEIGHBOURS = {"1": ["2"], "2": ["1", "3"], "3": ["2", "4"], "4": ["3"]}
 PACKAGE_DIRS = ["dmpc", "agents", "plant", "bus"]
@@ -181,12 +182,22 @@ def test_an_agent_subscribes_and_receives_only_the_release_and_its_neighbours_pl
     assert allowed(acl, cn, "ingress", "declare_liveliness_subscriber", "dmpc/r/alive/*")
 
 
-def test_plant_router_and_strangers(cert_dir):
+def test_coordinator_plant_router_and_strangers(cert_dir):
     acl = read_acl(cert_dir)
-    for key in ("dmpc/r/release", "dmpc/r/control", "dmpc/r/plan/2"):  # plans: relayed as the star's router
-        assert allowed(acl, "plant", "ingress", "put", key)
-    assert not allowed(acl, "plant", "ingress", "put", "dmpc/r/ready/1")
-    assert allowed(acl, "plant", "ingress", "declare_subscriber", "dmpc/r/plan/*")
+    for key in ("dmpc/r/release", "dmpc/r/control", "dmpc/r/inputs", "dmpc/r/plan/2"):  # plans: relayed as the star's router
+        assert allowed(acl, "coordinator", "ingress", "put", key)
+    assert not allowed(acl, "coordinator", "ingress", "put", "dmpc/r/ready/1")
+    assert allowed(acl, "coordinator", "ingress", "declare_subscriber", "dmpc/r/plan/*")
+    assert allowed(acl, "coordinator", "ingress", "declare_subscriber", "dmpc/r/state/*")
+    # the plant publishes its state and nothing else; a sensor only its own subsystem's
+    assert allowed(acl, "plant", "ingress", "put", "dmpc/r/state/plant")
+    for key in ("dmpc/r/release", "dmpc/r/control", "dmpc/r/plan/1", "dmpc/r/ready/1", "dmpc/r/inputs",
+                "dmpc/r/state/sensor-1"):
+        assert not allowed(acl, "plant", "ingress", "put", key)
+    assert allowed(acl, "plant", "ingress", "declare_subscriber", "dmpc/r/inputs")
+    assert allowed(acl, "sensor-2", "ingress", "put", "dmpc/r/state/sensor-2")
+    assert not allowed(acl, "sensor-2", "ingress", "put", "dmpc/r/state/sensor-1")
+    assert not allowed(acl, "sensor-2", "ingress", "put", "dmpc/r/state/plant")
     assert allowed(acl, "router", "ingress", "put", "dmpc/r/ready/1")
     assert allowed(acl, "router", "egress", "put", "dmpc/r/plan/1")
     for message in ("put", "declare_subscriber", "liveliness_token"):
@@ -223,7 +234,7 @@ def test_certs_command_writes_the_directory(monkeypatch, capsys, tmp_path):
     code, out, err = call(monkeypatch, capsys, "certs", str(tmp_path / "c"), "--scenario", PAPER,
                           "--host", "192.168.1.20", "--run-id", "lab-1")
     assert code == 0, err
-    assert "router, plant, agent-1, agent-2, agent-3, agent-4" in out and "ca.key" in out
+    assert "router, coordinator, plant, agent-1, agent-2, agent-3, agent-4, sensor-1" in out and "ca.key" in out
     san = load_cert(tmp_path / "c" / "agent-3.pem").extensions.get_extension_for_class(x509.SubjectAlternativeName)
     assert ipaddress.ip_address("192.168.1.20") in san.value.get_values_for_type(x509.IPAddress)
     acl = read_acl(tmp_path / "c")
@@ -302,7 +313,8 @@ def test_run_with_tls_puts_every_process_on_tls_links(tmp_path, prepared, cert_d
 def test_agent_reports_are_merged_into_the_summary(tmp_path):
     from dmpc.runtime.launcher import Child, merge_agent_reports
 
-    children = [Child(role, [], tmp_path / f"{role}.log") for role in ("plant", "agent-1", "agent-2")]
+    children = [Child(role, [], tmp_path / f"{role}.log", agents=agents)
+                for role, agents in (("plant", ()), ("agent-1", ("1",)), ("agent-2", ("2",)))]
     assert merge_agent_reports(tmp_path, children) is None  # no summary yet
     (tmp_path / "logs").mkdir()
     (tmp_path / "summary.json").write_text(json.dumps({"steps": 3, "rejected": {"1": 2}, "agents": {}}))

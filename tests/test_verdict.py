@@ -9,7 +9,7 @@ import pytest
 
 from dmpc.agents.controller import AgentController
 from dmpc.mpc_qp import QPStatus
-from dmpc.records.verdict import DIVERGENCE_FACTOR, RunLimits, judge, set_excess, state_bound_excess
+from dmpc.records.verdict import DIVERGENCE_FACTOR, RunLimits, judge, state_bound_excess
 from dmpc.system import CoupledSystem, LinearSet, Subsystem
 from tests.helpers.cli import call
 
@@ -227,7 +227,7 @@ def test_state_bound_excess_per_subsystem_and_polytopes():
     poly = LinearSet.polytope([[1.0]], [0.5])
     assert state_bound_excess(_system(poly), np.array([[0.2], [0.9]])) == {"s": pytest.approx(0.4)}
     assert state_bound_excess(_system(None), np.array([[0.2]])) == {"s": None}
-    assert set_excess(poly, np.array([[0.2]]))[0] == pytest.approx(-0.3)
+    assert poly.excess(np.array([[0.2]]))[0] == pytest.approx(-0.3)
 
 
 def test_the_horizon_search_finds_the_smallest_feasible_horizon():

@@ -366,7 +366,7 @@ def test_the_observer_role_may_subscribe_and_nothing_else(prepared):
         assert not can("ingress", "declare_subscriber", key) and not can("egress", "put", key), key
     assert not can("ingress", "liveliness_token", keys.alive("r", "observer"))
     assert not can("ingress", "declare_subscriber", keys.telemetry("other", "step"))
-    assert allowed(acl, "plant", "ingress", "put", telemetry)
+    assert allowed(acl, "coordinator", "ingress", "put", telemetry)
     assert not allowed(acl, "agent-1", "ingress", "put", telemetry)
 
 

@@ -34,7 +34,7 @@ OPTIONS = {"options.mode": "realtime", "options.dt": 0.1, "options.deadline": 5.
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory) -> dict:
     """The reference (``dmpc simulate``), the run's inputs and a certificate directory."""
-    from dmpc.runtime.bundle import load_bundle
+    from dmpc.run_bundle import load_bundle
     from dmpc.security.certs import make_run_security
 
     base = tmp_path_factory.mktemp("watch-security")
@@ -130,7 +130,7 @@ def _rogue(argv: list[str]) -> int:
     from dmpc.bus.codec import encode
     from dmpc.bus.messages import PlanMessage, Ready, Stop
     from dmpc.bus.session import open_session, session_config
-    from dmpc.runtime.bundle import load_bundle
+    from dmpc.run_bundle import load_bundle
     from dmpc.security.files import node_security
 
     p = argparse.ArgumentParser(prog="rogue")

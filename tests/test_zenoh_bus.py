@@ -351,3 +351,85 @@ def test_expect_names_the_hot_key_to_wait_on():
         a.publish("t/first", b"z")
         assert b.run(lambda: len(got) == 3, timeout=2)
         assert sorted(got[1:]) == ["t/first", "t/second"]
+
+
+# -- several nodes on one bus ----------------------------------------------------------------
+
+
+def test_handlers_of_one_key_share_a_subscriber_and_each_get_every_message():
+    with hz.peer_pair() as (a, b):
+        got = {"hot1": [], "hot2": [], "cold1": [], "cold2": []}
+        b.subscribe("t/hot", lambda k, p: got["hot1"].append(p), hot=True)
+        b.subscribe("t/hot", lambda k, p: got["hot2"].append(p), hot=True)
+        b.subscribe("t/cold", lambda k, p: got["cold1"].append(p))
+        b.subscribe("t/cold", lambda k, p: got["cold2"].append(p))
+        assert a.wait_for_subscribers("t/cold", 5) and a.wait_for_subscribers("t/hot", 5)
+        for i in range(3):
+            a.publish("t/hot", bytes([i]))
+            a.publish("t/cold", bytes([i]))
+        assert b.run(lambda: all(len(v) == 3 for v in got.values()), timeout=5), got
+        b.run(lambda: False, timeout=0.2)  # nothing more comes
+        assert all(v == [b"\x00", b"\x01", b"\x02"] for v in got.values()), got
+
+
+def test_a_later_watcher_of_a_pattern_is_told_the_tokens_alive_then_every_change():
+    with hz.peer_pair() as (a, b):
+        first, later = [], []
+        b.watch_alive("t/alive/*", lambda k, alive: first.append((k, alive)))
+        a.declare_alive("t/alive/x")
+        assert b.run(lambda: first == [("t/alive/x", True)], timeout=5), first
+        b.watch_alive("t/alive/*", lambda k, alive: later.append((k, alive)))
+        assert b.run(lambda: later == [("t/alive/x", True)], timeout=5), later
+        a.declare_alive("t/alive/y")
+        assert b.run(lambda: len(later) == 2, timeout=5)
+        assert later[1] == ("t/alive/y", True) and first[1] == ("t/alive/y", True)
+
+
+def _shared_pair(port: int) -> tuple[ZenohBus, ZenohBus]:
+    shared = ZenohBus(session_config(listen=[hz.listen_endpoint(port)]), open_timeout=10, shared=True)
+    return shared, hz.connector(port)
+
+
+def test_a_shared_bus_hands_its_own_nodes_their_messages_and_peers_get_one_copy():
+    """Two nodes of one process (a shared bus) and a node in another: a message published on
+    the shared bus reaches each subscriber once, whether in the same process or not."""
+    shared, other = _shared_pair(free_tcp_port())
+    try:
+        here1, here2, there = [], [], []
+        shared.subscribe("t/plan/1", lambda k, p: here1.append(p), hot=True)
+        shared.subscribe("t/plan/1", lambda k, p: here2.append(p), hot=True)
+        other.subscribe("t/plan/1", lambda k, p: there.append(p), hot=True)
+        assert shared.wait_for_subscribers("t/plan/1", 5)
+        for i in range(5):
+            shared.publish("t/plan/1", bytes([i]))
+        assert shared.run(lambda: len(here1) == 5 and len(here2) == 5, timeout=5)
+        assert other.run(lambda: len(there) == 5, timeout=5)
+        shared.run(lambda: False, timeout=0.2)
+        other.run(lambda: False, timeout=0.2)
+        expected = [bytes([i]) for i in range(5)]
+        assert here1 == expected and here2 == expected and there == expected
+    finally:
+        other.close()
+        shared.close()
+
+
+def test_a_shared_bus_wakes_at_once_for_a_message_on_any_key():
+    """On a shared bus only the first hot key is read by run itself: a message on any other key
+    that a node waits for ends the wait at once, whatever the last node asked to expect."""
+    shared, other = _shared_pair(free_tcp_port())
+    try:
+        got = []
+        shared.subscribe("t/release", lambda k, p: got.append(k), hot=True)
+        shared.subscribe("t/plan/9", lambda k, p: got.append(k), hot=True)
+        shared.subscribe("t/plan/8", lambda k, p: got.append(k), hot=True)
+        assert other.wait_for_subscribers("t/plan/9", 5) and other.wait_for_subscribers("t/plan/8", 5)
+        shared.expect("t/plan/9")  # ignored: it cannot name what every node waits for
+        shared.run(lambda: False, timeout=0.3)
+        for key in ("t/plan/8", "t/plan/9", "t/release"):
+            t0 = time.monotonic()
+            other.publish(key, b"x")
+            assert shared.run(lambda: got[-1:] == [key], timeout=2), got
+            assert time.monotonic() - t0 < 0.5 * POLL, key
+    finally:
+        other.close()
+        shared.close()

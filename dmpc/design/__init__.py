@@ -45,8 +45,9 @@ class Design:
     def sigma0(self) -> float:
         return self.terminal.sigma(self.alpha0)
 
-    def to_json(self) -> dict:
-        """The design as plain JSON (the content of ``design.json``)."""
+    def to_json(self, omega: bool = True) -> dict:
+        """The design as plain JSON (the content of ``design.json``); ``omega=False`` leaves out
+        the rows of X^f (``omega``), the bulk of it."""
         g = self.gains
         return {
             "gains_method": g.method,
@@ -59,7 +60,7 @@ class Design:
             "P": [p.tolist() for p in g.P],
             "omega_rows": self.terminal.rows,
             "t_star": self.terminal.t_star,
-            "omega": self.terminal.omega.tolist(),
+            **({"omega": self.terminal.omega.tolist()} if omega else {}),
             "sigma0": self.sigma0,
             "alpha0": self.alpha0.tolist(),
             "beta0": self.beta0,
@@ -123,11 +124,13 @@ def design_system(system: CoupledSystem, *, gains: str, horizon: int, alpha0: np
 
 def design_from_json(system: CoupledSystem, data: dict, *, horizon: int, alpha0: np.ndarray, beta0: float,
                      tube: str = "none", revision_bounds: dict[int, RevisionBound] | None = None,
-                     disturbance_bounds: dict[int, np.ndarray] | None = None) -> Design:
+                     disturbance_bounds: dict[int, np.ndarray] | None = None, verify: bool = True) -> Design:
     """Rebuild a design from ``design.json`` content without re-solving the LMI or the LPs.
 
-    The gains are verified again (cheap), the tubes recomputed; DesignError if the file does
-    not fit the system.
+    The gains are verified again, the tubes recomputed; DesignError if the file does not fit the
+    system. ``verify=False`` takes the gains' figures (rho, the margin of (10)) from the file
+    instead: for a file this program wrote from a verified design (a run bundle), since the
+    check costs O(n^3) on the global system, seconds per process at a thousand subsystems.
     """
     try:
         K = [np.asarray(k, dtype=float) for k in data["K"]]
@@ -143,11 +146,21 @@ def design_from_json(system: CoupledSystem, data: dict, *, horizon: int, alpha0:
         raise DesignError("design file: K, P or omega do not match the scenario's dimensions")
     if int(data.get("horizon", horizon)) != horizon:
         raise DesignError(f"design file: made for horizon {data.get('horizon')}, the scenario has {horizon}")
-    g = verify_gains(system, K, P, method, objective)
+    g = verify_gains(system, K, P, method, objective) if verify else _recorded_gains(data, K, P, method, objective)
     terminal = TerminalSet(omega=omega, t_star=t_star)
     design = _assemble(system, g, terminal, horizon, alpha0, beta0, tube, revision_bounds, disturbance_bounds)
     start = data.get("start")
     return design.with_start(start) if isinstance(start, dict) else design
+
+
+def _recorded_gains(data: dict, K: list[np.ndarray], P: list[np.ndarray], method: str, objective: str) -> GainDesign:
+    """The gains with the verification figures ``design.json`` recorded."""
+    try:
+        return GainDesign(K=K, P=P, method=method, rho=float(data["rho"]), lyapunov_margin=float(data["lyapunov_margin"]),
+                          lyapunov_tolerance=float(data["lyapunov_tolerance"]), objective=objective,
+                          margin_thin=bool(data.get("lyapunov_margin_thin", False)))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DesignError(f"design file: missing or malformed entry ({exc})") from None
 
 
 def _assemble(system: CoupledSystem, g: GainDesign, terminal: TerminalSet, horizon: int, alpha0: np.ndarray,

@@ -351,7 +351,7 @@ def _solve_lmi(system: CoupledSystem, scaling: list[np.ndarray] | None, objectiv
     shift : float
         Strictness margin s >= 0: (10) is imposed as (A+BK)'P(A+BK) - P <= -(Q + sI + K'RK).
     """
-    from dmpc.design.lmi_conic import solve_lmi
+    from dmpc.design.lmi_conic import solve_lmi  # start-up time: cvxpy only for the LMI design
 
     subs = system.subsystems
     if scaling is None:

@@ -10,49 +10,19 @@ Decision vector ``[z(1), ..., z(N), v(0), ..., v(N-1)]``; z(0) = x(0) is fixed.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import scipy.sparse as sp
 
-from dmpc.system import CoupledSystem, LinearSet
+from dmpc.system import CoupledSystem, LinearSet, stack_sets
 
 HORIZON_CAP = 200
 """The largest horizon the search for a feasible horizon tries."""
 _FEASIBLE, _INFEASIBLE = 0, 2  # scipy.optimize.linprog statuses
 
 
-@dataclass(frozen=True)
-class TerminalRows:
-    """The terminal constraint ``lower <= T z(N) <= upper`` on the global state.
-
-    T has shape (r, n); lower and upper shape (r,), entries may be infinite.
-    """
-
-    T: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-
-
-def _stack(sets: list[LinearSet | None], dims: list[int]) -> LinearSet | None:
-    """The block-diagonal stack of per-subsystem sets (None where a subsystem has none)."""
-    if all(s is None for s in sets):
-        return None
-    full = [s if s is not None else LinearSet(np.zeros((0, d)), np.zeros(0), np.zeros(0)) for s, d in zip(sets, dims)]
-    H = sp.block_diag([s.H for s in full], format="csr")
-    return LinearSet(H, np.concatenate([s.lower for s in full]), np.concatenate([s.upper for s in full]))
-
-
-def _one_sided(H, lower: np.ndarray, upper: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
-    """``lower <= H w <= upper`` as ``G w <= g`` with only the finite sides."""
-    H = sp.csr_matrix(H)
-    up, lo = np.isfinite(upper), np.isfinite(lower)
-    G = sp.vstack([H[np.flatnonzero(up)], -H[np.flatnonzero(lo)]], format="csr")
-    return G, np.concatenate([upper[up], -lower[lo]])
-
-
-def start_feasible(system: CoupledSystem, x0: np.ndarray, horizon: int, terminal: TerminalRows) -> bool | None:
-    """Whether x0 (n,) admits a plan of ``horizon`` steps inside U, X and the terminal rows.
+def start_feasible(system: CoupledSystem, x0: np.ndarray, horizon: int, terminal: LinearSet) -> bool | None:
+    """Whether x0 (n,) admits a plan of ``horizon`` steps inside U, X and the terminal set
+    (``terminal``: rows on the global state z(N), dimension n).
 
     Returns
     -------
@@ -69,16 +39,16 @@ def start_feasible(system: CoupledSystem, x0: np.ndarray, horizon: int, terminal
     b_eq = np.zeros(nz)
     b_eq[:n] = A @ np.asarray(x0, float)
     rows, rhs = [], []
-    inputs = _stack([s.input_set for s in system.subsystems], [s.m for s in system.subsystems])
-    G, g = _one_sided(inputs.H, inputs.lower, inputs.upper)
+    inputs = stack_sets([s.input_set for s in system.subsystems], [s.m for s in system.subsystems], sparse=True)
+    G, g = inputs.one_sided()
     rows.append(sp.hstack([sp.csr_matrix((N * G.shape[0], nz)), sp.kron(sp.eye(N), G)]))
     rhs.append(np.tile(g, N))
-    states = _stack([s.state_set for s in system.subsystems], [s.n for s in system.subsystems])
+    states = stack_sets([s.state_set for s in system.subsystems], [s.n for s in system.subsystems], sparse=True)
     if states is not None:
-        G, g = _one_sided(states.H, states.lower, states.upper)
+        G, g = states.one_sided()
         rows.append(sp.hstack([sp.kron(sp.eye(N), G), sp.csr_matrix((N * G.shape[0], nv))]))
         rhs.append(np.tile(g, N))
-    G, g = _one_sided(terminal.T, terminal.lower, terminal.upper)
+    G, g = LinearSet(sp.csr_matrix(terminal.H), terminal.lower, terminal.upper).one_sided()
     last = sp.hstack([sp.csr_matrix((n, (N - 1) * n)), sp.eye(n)])
     rows.append(sp.hstack([G @ last, sp.csr_matrix((G.shape[0], nv))]))
     rhs.append(g)

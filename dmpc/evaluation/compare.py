@@ -22,9 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from dmpc.methods import METHOD_NAMES, method_spec
-from dmpc.records.run_folder import STEP_LOG, RunFolderError, write_json
+from dmpc.records.files import COMPARISON, STEP_LOG, TRAJECTORY
+from dmpc.records.run_folder import claim_folder, refuse_used, write_json
+from dmpc.records.session import RunRecorder
+from dmpc.runtime.inprocess import record_run
+from dmpc.runtime.setup import prepare
 
-COMPARISON = "comparison.json"
 CONVERGED = 1e-3
 
 
@@ -46,17 +49,15 @@ def check_methods(methods: list[str] | None) -> list[str]:
 
 
 def check_out(out: Path, methods: list[str]) -> None:
-    """RunFolderError if DIR already holds a comparison or a run of one of the methods."""
-    if (out / COMPARISON).exists():
-        raise RunFolderError(f"{out} already holds a comparison ({COMPARISON} exists): choose another --out")
+    """Create DIR; RunFolderError if it already holds a comparison or a run of one of the methods."""
+    claim_folder(out, COMPARISON, "a comparison")
     for name in methods:
-        if (out / name / STEP_LOG).exists():
-            raise RunFolderError(f"{out / name} already holds a run ({STEP_LOG} exists): choose another --out")
+        refuse_used(out / name, STEP_LOG, "a run")
 
 
 def method_entry(run_dir: Path, out: Path, summary: dict) -> dict:
     """The comparison.json entry of one method's run folder."""
-    x = np.load(run_dir / "trajectory.npz")["x"]
+    x = np.load(run_dir / TRAJECTORY)["x"]
     return {
         "run_dir": str(run_dir.relative_to(out)),
         "closed_loop_cost": float(summary["closed_loop_cost"]),
@@ -88,10 +89,6 @@ def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
     on_method : callable (method, entry), optional
         Called after each method's run.
     """
-    from dmpc.records.session import RunRecorder
-    from dmpc.runtime.inprocess import record_run
-    from dmpc.runtime.setup import prepare
-
     check_out(out, methods)
     design_data = None
     entries: dict[str, dict] = {}

@@ -15,7 +15,7 @@ steps and counted as
 
 A run stops as soon as it has converged, or once ||x||_inf exceeds ``DIVERGED`` times R (it is
 then counted as not converged). The QPs are set up once per (method, N) and only x(0)
-changes between samples (dmpc.runtime.direct, dmpc.runtime.central).
+changes between samples (dmpc.runtime.direct, dmpc.runtime.central_loop).
 """
 from __future__ import annotations
 
@@ -27,9 +27,12 @@ import numpy as np
 
 from dmpc.evaluation.compare import CONVERGED
 from dmpc.methods import method_spec
+from dmpc.qp_status import SOLVED
+from dmpc.runtime.central_loop import CentralLoop
+from dmpc.runtime.direct import DirectLoop
+from dmpc.runtime.setup import prepare
 
 DIVERGED = 1e3
-SOLVED = ("solved", "solved_inaccurate")
 ROA_FILE = "roa.json"
 ROA_PLOT = "roa.png"
 
@@ -96,15 +99,10 @@ def horizon_loop(scenario, method: str, N: int, design_data: dict):
 
     ``design_data`` (``design.json`` content) is reused, so the gains and X^f are not recomputed.
     """
-    from dmpc.runtime.setup import prepare
-
     scn = scenario.model_copy(update={"horizon": N})
     prepared = prepare(scn, design_data={**design_data, "horizon": N})
     if not method_spec(method).distributed:
-        from dmpc.runtime.central import CentralLoop
-
         return CentralLoop(prepared.system, prepared.design), prepared.protocol.steps
-    from dmpc.runtime.direct import DirectLoop
 
     return (DirectLoop(prepared.system, prepared.design, prepared.protocol, method, prepared.coupling),
             prepared.protocol.steps)
@@ -140,8 +138,6 @@ def region_of_attraction(scenario, horizons: list[int], methods: list[str], samp
     advance : callable, optional
         Called after each sample (progress).
     """
-    from dmpc.runtime.setup import prepare
-
     # the samples replace the scenario's x(0): design at a fixed horizon, without its start check
     unchecked = scenario.model_copy(update={"horizon": horizons[0], "design": scenario.design.model_copy(
         update={"check_start": False})})

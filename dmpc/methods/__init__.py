@@ -15,11 +15,10 @@ the same code.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # the scenario schema imports this module: keep it free of numerical imports
-    from dmpc.design import Design
-    from dmpc.system import CoupledSystem
+from dmpc.design import Design
+from dmpc.methods.policy import BoxPolicy, EllipsoidPolicy, TerminalPolicy
+from dmpc.system import CoupledSystem
 
 DEFAULT_METHOD = "tv-box"
 
@@ -53,7 +52,7 @@ def method_spec(name: str) -> MethodSpec:
         raise ValueError(f"unknown method {name!r} (expected one of: {', '.join(METHODS)})") from None
 
 
-def terminal_policy(name: str, system: CoupledSystem, design: Design):
+def terminal_policy(name: str, system: CoupledSystem, design: Design) -> TerminalPolicy:
     """The :class:`~dmpc.methods.policy.TerminalPolicy` of a distributed method.
 
     Raises
@@ -61,15 +60,13 @@ def terminal_policy(name: str, system: CoupledSystem, design: Design):
     ValueError
         For an unknown method, or for ``centralized``, which has no agents.
     """
-    from dmpc.methods.policy import BoxPolicy, EllipsoidPolicy
-
     spec = method_spec(name)
     if not spec.distributed:
         raise ValueError(f"method {name!r} runs no agents and has no terminal policy")
     if name in ("tv-box", "fixed-box"):
         return BoxPolicy(system, design, name, time_varying=name == "tv-box")
     if name == "tv-box-opt":
-        from dmpc.methods.initial import BoxOptimizer
+        from dmpc.methods.initial import BoxOptimizer  # start-up time: only the tv-box-opt method uses it
 
         return BoxPolicy(system, design, name, time_varying=True, optimizer=BoxOptimizer(system, design))
     return EllipsoidPolicy(system, design, name, adaptive=name == "ellipsoid-adaptive")

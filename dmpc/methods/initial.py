@@ -46,7 +46,7 @@ class BoxOptimizer:
         self._qp = None
 
     def __call__(self, x0: np.ndarray) -> InitialBox:
-        from dmpc.centralized import CentralQP  # lazy: agent processes never need it
+        from dmpc.central_qp import CentralQP  # lazy: agent processes never need it
 
         d = self._design
         if self._qp is None:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmpc.system import CoupledSystem
+from dmpc.system import CoupledSystem, block_diag
 
 
 def dual_norms(omega: np.ndarray, system: CoupledSystem, P: list[np.ndarray]) -> np.ndarray:
@@ -78,8 +78,6 @@ def level_increments(system: CoupledSystem, K: list[np.ndarray], P: list[np.ndar
     K, P : list of ndarray
         The terminal gains K_i (m_i, n_i) and weights P_i (n_i, n_i).
     """
-    from dmpc.system import block_diag
-
     AK = system.A + system.B @ block_diag(*K)
     out = []
     for i, sub in enumerate(system.subsystems):

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -110,8 +111,12 @@ class BoxPolicy(TerminalPolicy):
         self.name = name
         self.time_varying = time_varying
         self._optimizer = optimizer
-        self._AK = system.A + system.B @ design.gains.K_global()
         self._terminals: dict[int, BoxTerminal] = {}
+
+    @cached_property
+    def _AK(self) -> np.ndarray:
+        # only the coordinator updates the boxes: an agent never builds the global A+BK
+        return self.system.A + self.system.B @ self.design.gains.K_global()
 
     def agent_terminal(self, i: int) -> AgentTerminal:
         if i not in self._terminals:

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dmpc.plant.barrier import StepRecord
+from dmpc.qp_status import SOLVED
+from dmpc.steps import StepRecord
 from dmpc.system import CoupledSystem
 
-ROWS_FILE = ".steps.f64"
 BLOCK_ROWS = 4096
 """Rows copied at a time when ``trajectory.npz`` is written."""
 FINAL = ("x", "alpha", "beta", "S", "r")
@@ -71,9 +71,6 @@ class StepTally:
             return len(self.reasons) - 1
 
 
-SOLVED = ("solved", "solved_inaccurate")
-
-
 class StepColumns:
     """Rows of step numbers, appended one per completed step.
 
@@ -97,12 +94,11 @@ class StepColumns:
 
     # ------------------------------------------------------------------ writing
     def _values(self, rec: StepRecord) -> dict[str, np.ndarray]:
-        M = self.system.M
         values = {
             "x": rec.x, "u": rec.u, "alpha": rec.alpha, "beta": rec.beta, "J": rec.J, "S": rec.S,
             "J_agents": rec.J_agents, "solve_time": rec.solve_time, "qp_iterations": rec.qp_iterations,
-            "fallback": rec.fallback, "latency": rec.latency if rec.latency else [np.nan] * M,
-            "rounds": rec.rounds, "step_time": rec.step_time, "max_change": rec.max_change,
+            "fallback": rec.fallback, "latency": rec.latency, "rounds": rec.rounds, "step_time": rec.step_time,
+            "max_change": rec.max_change,
             "fallback_code": [self.tally.code(r) for r in rec.fallback_reason],
         }
         if rec.r is not None:

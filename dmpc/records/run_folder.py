@@ -13,14 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dmpc.plant.barrier import StepRecord
-from dmpc.records.columns import ROWS_FILE, StepColumns, StepTally, write_npz
+from dmpc.records.columns import StepColumns, StepTally, write_npz
+from dmpc.records.files import ROWS, STEP_LOG, SUMMARY, TRAJECTORY
 from dmpc.records.verdict import RunLimits, judge, state_bound_excess
+from dmpc.steps import StepRecord
 from dmpc.system import CoupledSystem
-
-STEP_LOG = "steps.jsonl"
-TRAJECTORY = "trajectory.npz"
-SUMMARY = "summary.json"
 
 
 class RunFolderError(Exception):
@@ -71,6 +68,12 @@ def write_json(path: Path, data) -> None:
     os.replace(tmp, path)
 
 
+def refuse_used(path: Path, marker: str, holds: str) -> None:
+    """RunFolderError if ``path`` already holds ``marker`` (what that means: ``holds``, e.g. "a run")."""
+    if (path / marker).exists():
+        raise RunFolderError(f"{path} already holds {holds} ({marker} exists): choose another --out")
+
+
 def claim_folder(path: Path, marker: str, holds: str) -> None:
     """Create ``path`` for new output, refusing one that already holds ``marker`` (what it is: ``holds``).
 
@@ -79,8 +82,7 @@ def claim_folder(path: Path, marker: str, holds: str) -> None:
     RunFolderError
         ``path / marker`` exists, or ``path`` cannot be created.
     """
-    if (path / marker).exists():
-        raise RunFolderError(f"{path} already holds {holds} ({marker} exists): choose another --out")
+    refuse_used(path, marker, holds)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -111,7 +113,7 @@ class RunFolder:
         self.system = system
         try:
             self._log = open(self.path / STEP_LOG, "a", encoding="utf-8")
-            self.columns = StepColumns(system, self.path / ROWS_FILE)
+            self.columns = StepColumns(system, self.path / ROWS)
         except OSError as exc:
             raise write_error(exc, self.path / STEP_LOG, RunFolderError) from None
 
@@ -148,7 +150,7 @@ class RunFolder:
             self.columns.add(rec)
         except OSError as exc:
             self._cut_back(log_end)
-            raise write_error(exc, self.path / ROWS_FILE) from None
+            raise write_error(exc, self.path / ROWS) from None
 
     def _cut_back(self, log_end: int) -> None:
         """Drop a partly written last line (truncating needs no free space)."""
@@ -189,7 +191,7 @@ class RunFolder:
         except OSError as exc:
             raise write_error(exc, self.path / SUMMARY) from None
         try:
-            os.unlink(self.path / ROWS_FILE)
+            os.unlink(self.path / ROWS)
         except OSError:
             pass
         return summary
@@ -264,10 +266,7 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
     u = arrays["u"]
     bound_excess = 0.0
     for i, sub in enumerate(system.subsystems):
-        if K:
-            Hu = u[:, system.us(i)] @ sub.input_set.H.T
-            bound_excess = max(bound_excess, float(np.max(Hu - sub.input_set.upper)),
-                               float(np.max(sub.input_set.lower - Hu)))
+        bound_excess = max(bound_excess, sub.input_set.largest_excess(u[:, system.us(i)]))
     J = arrays["J"]
     decrease = []
     for k in range(K - 1):

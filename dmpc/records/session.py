@@ -2,17 +2,20 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
+from pathlib import Path
 
 import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from dmpc.console import stderr_console
-from dmpc.plant.barrier import StepRecord
+from dmpc.records.files import BUNDLE, DESIGN, DISTURBANCE, SCENARIO
 from dmpc.records.run_folder import RecordWriteError, RunFolder
 from dmpc.records.verdict import RunLimits
-from dmpc.runtime.plant_setup import DISTURBANCE_FILE
-from dmpc.runtime.setup import Prepared
+from dmpc.run_bundle import bundle_json
+from dmpc.run_spec import Prepared
 from dmpc.scenario import dump_resolved
+from dmpc.steps import StepRecord
 
 
 class RunRecorder:
@@ -26,20 +29,29 @@ class RunRecorder:
         The run folder.
     prepared : Prepared
     show_progress : bool
+    sources : iterable of path-like, optional
+        The files the run was loaded from (scenario or run bundle, design). One that already is
+        the run folder's own file is not written again: ``dmpc run`` writes them before it starts
+        the plant on them.
     """
 
-    def __init__(self, out, prepared: Prepared, show_progress: bool = True) -> None:
+    def __init__(self, out, prepared: Prepared, show_progress: bool = True, sources: Iterable = ()) -> None:
         self.prepared = prepared
         self.folder = RunFolder(out, prepared.system)
-        if prepared.scenario is not None:
-            self.folder.write_text("scenario.yaml", dump_resolved(prepared.scenario))
-        else:  # started from a run bundle: the bundle describes the run instead
-            from dmpc.runtime.bundle import bundle_json
+        loaded = {Path(p).resolve() for p in sources}
 
-            self.folder.write_json("run.json", bundle_json(prepared))
-        self.folder.write_json("design.json", prepared.design_json())
+        def needed(name: str) -> bool:
+            return (self.folder.path / name).resolve() not in loaded
+
+        if prepared.scenario is not None:
+            if needed(SCENARIO):
+                self.folder.write_text(SCENARIO, dump_resolved(prepared.scenario))
+        elif needed(BUNDLE):  # started from a run bundle: the bundle describes the run instead
+            self.folder.write_json(BUNDLE, bundle_json(prepared))
+        if needed(DESIGN):
+            self.folder.write_json(DESIGN, prepared.design_json())
         if prepared.plant.disturbance is not None:
-            np.save(self.folder.path / DISTURBANCE_FILE, prepared.plant.disturbance)
+            np.save(self.folder.path / DISTURBANCE, prepared.plant.disturbance)
         self._started = time.monotonic()
         self._progress = None
         self._task = None
@@ -81,7 +93,8 @@ class RunRecorder:
         info.update({k: v for k, v in extra.items() if v is not None})
         p = self.prepared.protocol
         limits = RunLimits(steps=p.steps, initial_iterations=p.initial_iterations, iterations=p.iterations,
-                           initial_tolerance=p.initial_tolerance, tolerance=p.tolerance)
+                           initial_tolerance=p.initial_tolerance, tolerance=p.tolerance,
+                           stopped=str(info.get("failure") or info.get("aborted") or ""))
         self.summary = self.folder.finish(info, limits)
         return self.summary
 

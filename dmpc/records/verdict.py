@@ -100,6 +100,8 @@ class RunLimits:
         Jacobi caps at k = 0 and after.
     initial_tolerance, tolerance : float
         Jacobi tolerances at k = 0 and after.
+    stopped : str
+        Why the run stopped early, if it did ("" if not known): named in ``incomplete``.
     """
 
     steps: int
@@ -107,36 +109,12 @@ class RunLimits:
     iterations: int = 1
     initial_tolerance: float = 1e-9
     tolerance: float = 1e-9
+    stopped: str = ""
 
 
 def _steps_text(steps: list[int]) -> str:
     shown = ", ".join(str(k) for k in steps[:SHOWN_STEPS])
     return shown + (", ..." if len(steps) > SHOWN_STEPS else "")
-
-
-def set_excess(linear_set: LinearSet, values: np.ndarray) -> np.ndarray:
-    """Largest excess of each row of ``values`` over the set's bounds, scaled by max(1, |bound|).
-
-    Parameters
-    ----------
-    linear_set : LinearSet
-        Dimension d.
-    values : ndarray, shape (K, d)
-
-    Returns
-    -------
-    raw : ndarray, shape (K,)
-        max over rows r of (H v - upper, lower - H v); negative when strictly inside. NaN
-        values give NaN.
-    """
-    if values.shape[0] == 0:
-        return np.zeros(0)
-    Hv = values @ linear_set.H.T
-    with np.errstate(invalid="ignore"):
-        over = np.where(np.isfinite(linear_set.upper), Hv - linear_set.upper, -np.inf)
-        under = np.where(np.isfinite(linear_set.lower), linear_set.lower - Hv, -np.inf)
-        excess = np.maximum(over, under)
-    return np.max(excess, axis=1)
 
 
 def _tolerance(linear_set: LinearSet) -> float:
@@ -157,7 +135,7 @@ def state_bound_excess(system: CoupledSystem, x: np.ndarray) -> dict[str, float 
         if sub.state_set is None or x.shape[0] == 0:
             out[sub.name] = None
             continue
-        excess = set_excess(sub.state_set, x[:, system.xs(i)])
+        excess = sub.state_set.excess(x[:, system.xs(i)])
         finite = excess[np.isfinite(excess)]
         out[sub.name] = float(finite.max()) if finite.size else None
     return out
@@ -169,7 +147,7 @@ def _bound_findings(system: CoupledSystem, values: np.ndarray, kind: str, what: 
     for sub, lset, sl in zip(system.subsystems, sets, slices):
         if lset is None or values.shape[0] == 0:
             continue
-        excess = set_excess(lset, values[:, sl])
+        excess = lset.excess(values[:, sl])
         bad = np.flatnonzero(np.isfinite(excess) & (excess > _tolerance(lset)))
         if bad.size:
             worst = float(np.max(excess[bad]))
@@ -270,7 +248,8 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
                                                 f"(k = {_steps_text(grown)})", steps=grown, amount=float(norms.max())))
 
     if K < limits.steps:
-        failures.append(Finding("incomplete", f"{K} of {limits.steps} steps recorded", amount=float(K)))
+        why = f" (stopped: {limits.stopped})" if limits.stopped else ""
+        failures.append(Finding("incomplete", f"{K} of {limits.steps} steps recorded{why}", amount=float(K)))
 
     if missed:
         total = sum(len(v) for v in missed.values())

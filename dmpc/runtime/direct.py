@@ -1,9 +1,11 @@
 """A distributed run without a bus: the coordinator's releases answered by direct solves.
 
 The same Coordinator and AgentControllers as ``dmpc simulate``, wired together by function
-calls instead of messages: no codec, no event loop, no clock. The agents' QPs are set up once
-and reused for every run, so many runs from different initial states (the region of
-attraction) cost only their solves. Fault-free runs only: every plan arrives.
+calls instead of messages: no codec, no event loop, no clock (the records' latency and step
+time are NaN). Each agent answers a release through the same AgentController.answer as over a
+bus. The agents' QPs are set up once and reused for every run, so many runs from different
+initial states (the region of attraction) cost only their solves. Fault-free runs only: every
+plan arrives.
 """
 from __future__ import annotations
 
@@ -14,11 +16,12 @@ from dataclasses import replace
 import numpy as np
 
 from dmpc.agents.controller import AgentController
-from dmpc.bus.messages import PlanMessage
+from dmpc.bus.messages import PlanMessage, Release
 from dmpc.design import Design
 from dmpc.methods import terminal_policy
-from dmpc.plant.barrier import Coordinator, ProtocolOptions, SendRelease, StepCompleted, StepRecord
+from dmpc.plant.barrier import Coordinator, SendRelease, StepCompleted
 from dmpc.plant.dynamics import Plant
+from dmpc.steps import ProtocolOptions, StepRecord
 from dmpc.system import CoupledSystem
 from dmpc.trajectories import Plan
 
@@ -66,7 +69,8 @@ class DirectLoop:
                 skipped = set(action.release.skipped)
                 for i, name in enumerate(self.names):
                     if name not in skipped:
-                        pending.extend(coordinator.on_plan(self._answer(i, action.release, archive)))
+                        actions, _ = coordinator.on_plan(self._answer(i, action.release, archive))
+                        pending.extend(actions)
             elif isinstance(action, StepCompleted):
                 on_step(action.record)
                 done += 1
@@ -74,7 +78,7 @@ class DirectLoop:
                     break
         return done
 
-    def _answer(self, i: int, release, archive: dict[tuple[int, int, int], Plan]) -> PlanMessage:
+    def _answer(self, i: int, release: Release, archive: dict[tuple[int, int, int], Plan]) -> PlanMessage:
         """Agent i's plan for the release (what AgentNode does over the bus)."""
         plans: dict[int, Plan | None] = {}
         for j in self.controllers[i].neighbours:
@@ -85,10 +89,6 @@ class DirectLoop:
                 plans[j] = Plan(ref[0], ref[1], *release.provided[self.names[j]])
             else:
                 plans[j] = archive[(j, *ref)]
-        system = self.system
-        states = {j: release.x[system.xs(j)] for j in system.neighbours[i]}
-        sol = self.controllers[i].solve(release.k, states, release.centres[system.xs(i)], float(release.sizes[i]), plans)
-        archive[(i, release.k, release.iteration)] = Plan(release.k, release.iteration, sol.z, sol.v)
-        return PlanMessage(run=RUN_ID, k=release.k, iteration=release.iteration, sender=self.names[i],
-                           status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
-                           qp_iterations=int(sol.iterations))
+        msg = self.controllers[i].answer(release, plans, RUN_ID)
+        archive[(i, release.k, release.iteration)] = Plan(release.k, release.iteration, msg.z, msg.v)
+        return msg

@@ -18,11 +18,12 @@ from dataclasses import replace
 import numpy as np
 
 from dmpc.design import Design, DesignError, GainDesign, RevisionBound, TerminalSet, assemble
-from dmpc.design.start import HORIZON_CAP, TerminalRows, smallest_feasible_horizon, start_feasible
+from dmpc.design.start import HORIZON_CAP, smallest_feasible_horizon, start_feasible
 from dmpc.methods import terminal_policy
-from dmpc.mpc_qp import QPStatus
-from dmpc.plant.barrier import ProtocolOptions
-from dmpc.system import CoupledSystem
+from dmpc.qp_status import SOLVED
+from dmpc.runtime.direct import DirectLoop
+from dmpc.steps import ProtocolOptions
+from dmpc.system import CoupledSystem, LinearSet
 
 BETA0_FRACTION = 0.9
 """``beta0: auto`` = this fraction of sigma(alpha0)."""
@@ -44,7 +45,7 @@ def horizon_margin(n_min: int) -> int:
     return max(MIN_MARGIN, math.ceil(MARGIN_FRACTION * n_min))
 
 
-def k0_terminal(design: Design, system: CoupledSystem, method: str) -> TerminalRows:
+def k0_terminal(design: Design, system: CoupledSystem, method: str) -> LinearSet:
     """The method's terminal constraint at k = 0 on the global state.
 
     The box methods impose the box around alpha0; ``tv-box-opt`` and ``centralized`` may use all
@@ -52,25 +53,23 @@ def k0_terminal(design: Design, system: CoupledSystem, method: str) -> TerminalR
     """
     if method in ("tv-box-opt", "centralized"):
         omega = design.terminal.omega
-        return TerminalRows(omega, np.full(omega.shape[0], -np.inf), np.ones(omega.shape[0]))
+        return LinearSet.polytope(omega, np.ones(omega.shape[0]))
     policy = terminal_policy(method, system, design)
     T, lower, upper = policy.joint_terminal(policy.initial(system.x0))
-    return TerminalRows(T, lower, upper)
+    return LinearSet(T, lower, upper)
 
 
 def _dmpc_k0_feasible(system: CoupledSystem, design: Design, method: str, coupling: str,
                       protocol: ProtocolOptions) -> bool:
     """True if the distributed k = 0 step gives every agent a plan (no fallback) from a QP that
     was feasible in the last round."""
-    from dmpc.runtime.direct import DirectLoop
-
     if method == "centralized":
         return True  # one QP: central feasibility is the whole story
     records = []
     DirectLoop(system, design, replace(protocol, steps=1), method, coupling).run(1, records.append)
     # an agent whose QP failed in a later Jacobi round keeps an earlier plan (no fallback), but
     # its problem from the final assumptions was infeasible: that counts as infeasible too
-    return bool(records) and not any(records[0].fallback) and all(QPStatus(s).feasible for s in records[0].status)
+    return bool(records) and not any(records[0].fallback) and all(s in SOLVED for s in records[0].status)
 
 
 class StartCheck:
@@ -101,7 +100,7 @@ class StartCheck:
         self.protocol = protocol
         self._make = lambda N: assemble(system, gains, terminal, horizon=N, alpha0=alpha0, beta0=beta0, tube=tube,
                                         revision_bounds=revision_bounds, disturbance_bounds=disturbance_bounds)
-        self._terminal_rows: TerminalRows | None = None
+        self._terminal_rows: LinearSet | None = None
 
     def design(self, N: int) -> Design:
         return self._make(N)

@@ -1,7 +1,7 @@
 """Every node of a run in one process, on the in-memory bus (``dmpc simulate``).
 
 The ``centralized`` method has no nodes: :func:`record_run` runs it as one QP per step
-(dmpc.runtime.central) and records it the same way.
+(dmpc.runtime.central_loop) and records it the same way.
 """
 from __future__ import annotations
 
@@ -14,10 +14,13 @@ from dmpc.bus.faults import FaultyBus
 from dmpc.bus.interface import Bus
 from dmpc.bus.memory import MemoryBus
 from dmpc.methods import method_spec, terminal_policy
-from dmpc.plant.barrier import Coordinator, StepRecord
+from dmpc.plant.barrier import Coordinator
+from dmpc.plant.models import make_plant
 from dmpc.plant.node import PlantNode
-from dmpc.runtime.plant_setup import make_plant
-from dmpc.runtime.setup import Prepared
+from dmpc.records.session import RunRecorder
+from dmpc.run_spec import Prepared
+from dmpc.runtime.central_loop import CentralLoop
+from dmpc.steps import StepRecord
 
 
 @dataclass
@@ -46,9 +49,10 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
     else:
         view = lambda b, name: FaultyBus(b, name, prepared.faults)  # noqa: E731
     system, design = prepared.system, prepared.design
+    plant_bus = view(bus, "plant")
     coordinator = Coordinator(system, design, make_plant(prepared), prepared.protocol, run_id,
-                              policy=terminal_policy(prepared.method, system, design))
-    plant = PlantNode(view(bus, "plant"), coordinator, prepared.digest, on_step, mode=prepared.mode,
+                              policy=terminal_policy(prepared.method, system, design), clock=plant_bus.now)
+    plant = PlantNode(plant_bus, coordinator, prepared.digest, on_step, mode=prepared.mode,
                       dt=prepared.dt, deadline=prepared.deadline)
     agents = []
     for i, name in enumerate(prepared.names):
@@ -79,15 +83,13 @@ def simulate(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: 
     return run
 
 
-def record_run(prepared: Prepared, recorder) -> tuple[dict, str]:
+def record_run(prepared: Prepared, recorder: RunRecorder) -> tuple[dict, str]:
     """Run the prepared method in this process into a RunRecorder and complete its records.
 
     Distributed methods run their nodes on the in-memory bus (:func:`simulate`); ``centralized``
     runs one QP per step. Returns the summary and the failure ("" if none).
     """
     if not method_spec(prepared.method).distributed:
-        from dmpc.runtime.central import CentralLoop
-
         result = CentralLoop(prepared.system, prepared.design).run(prepared.protocol.steps, recorder.on_step,
                                                                    plant=make_plant(prepared))
         summary = recorder.complete(runtime="in-process (centralized, no agents)", failure=result.failure or None)

@@ -19,20 +19,25 @@ from pathlib import Path
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from dmpc.bus import keys
 from dmpc.console import stderr_console
-from dmpc.exit_codes import EXIT_INTERRUPTED
+from dmpc.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from dmpc.records.agent_reports import merge_agent_reports as merge_reports
-from dmpc.records.run_folder import STEP_LOG, RunFolderError, claim_folder, write_error, write_json
-from dmpc.runtime.bundle import write_bundle
+from dmpc.records.files import BUNDLE, DESIGN, LOGS, PROCESSES, SCENARIO, STEP_LOG, TLS, log_file, report_file
+from dmpc.records.run_folder import RunFolderError, claim_folder, write_error, write_json
+from dmpc.run_bundle import write_bundle
+from dmpc.run_spec import Prepared
+from dmpc.runtime.forkserver import ForkServer, ForkServerError
+from dmpc.runtime.hosting import group_agents
 from dmpc.runtime.logpump import LogPump
 from dmpc.runtime.supervisor import RestartPolicy, Supervision, Supervisor, restart_note
-from dmpc.runtime.setup import Prepared
 from dmpc.scenario import dump_resolved
+from dmpc.security.acl import ACL_FILE
 
 STOP_GRACE = 3.0
+DMPC = (sys.executable, "-m", "dmpc.cli")
 PORT_ATTEMPTS = 5
 """Launches tried when the plant's port is taken before the plant could bind it."""
-BUNDLE = "run.json"
 PR_SET_PDEATHSIG = 1
 
 
@@ -45,10 +50,13 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 
 @dataclass
 class Child:
+    """A process of the run; ``agents``: the subsystems it serves (none for the plant)."""
+
     role: str
     cmd: list[str]
     log_path: Path
     proc: subprocess.Popen | None = None
+    agents: tuple[str, ...] = ()
 
     @property
     def pid(self) -> int:
@@ -104,8 +112,8 @@ def _ephemeral_range() -> tuple[int, int]:
 def prepare_run_folder(out: Path, prepared: Prepared) -> tuple[Path, Path]:
     """Write the resolved scenario and the design the children load; returns their paths."""
     claim_folder(out, STEP_LOG, "a run")
-    scenario_path = out / "scenario.yaml"
-    design_path = out / "design.json"
+    scenario_path = out / SCENARIO
+    design_path = out / DESIGN
     target = scenario_path
     try:
         scenario_path.write_text(dump_resolved(prepared.scenario))
@@ -113,7 +121,7 @@ def prepare_run_folder(out: Path, prepared: Prepared) -> tuple[Path, Path]:
         write_json(design_path, prepared.design_json())
         target = out / BUNDLE
         write_bundle(prepared, out / BUNDLE)
-        target = out / "logs"
+        target = out / LOGS
         target.mkdir(exist_ok=True)
     except OSError as exc:
         raise write_error(exc, target, RunFolderError) from None
@@ -125,51 +133,105 @@ TOPOLOGIES = ("mesh", "star")
 
 
 def default_topology(agents: int) -> str:
-    """``mesh`` up to ``STAR_ABOVE`` agents, ``star`` above."""
+    """``mesh`` up to ``STAR_ABOVE`` agent processes, ``star`` above."""
     return "mesh" if agents <= STAR_ABOVE else "star"
 
 
 def child_commands(prepared: Prepared, out: Path, scenario_path: Path, design_path: Path, run_id: str, port: int,
                    startup_timeout: float, extra: list[str] | None = None, tls_dir: Path | None = None,
-                   topology: str = "mesh", plant_model: str | None = None) -> list[Child]:
+                   topology: str = "mesh", plant_model: str | None = None,
+                   plant_timeout: float | None = None, agents_per_process: int = 1) -> list[Child]:
     """The plant and agent command lines (``python -m dmpc.cli ...``); ``tls_dir``: every link
     over TLS with the certificates (and access control) of that directory.
+
+    With ``plant_timeout`` (an outside plant, ``dmpc run --plant external``) the first child is
+    ``dmpc coordinator --plant external`` instead of ``dmpc plant``.
 
     ``mesh``: every process a peer, agents linked directly to each other (lowest latency for
     small M). ``star``: the plant's session is a router and agents are its clients, so there are
     M links instead of M^2/2 and agent-to-agent plans are forwarded by the plant's router.
     ``plant_model`` (``module:function``) is the plant process's ``--model``.
+    ``agents_per_process``: K agents (at most) served by each agent process
+    (:mod:`dmpc.runtime.hosting`).
     """
-    base = [sys.executable, "-m", "dmpc.cli"]
+    base = list(DMPC)
     proto = "tcp" if tls_dir is None else "tls"
     endpoint = f"{proto}/127.0.0.1:{port}"
     common = ["--design", str(design_path), "--run-id", run_id, "--startup-timeout", str(startup_timeout),
               "--no-multicast"] + (extra or []) + ([] if tls_dir is None else ["--tls", str(tls_dir)])
-    logs = out / "logs"
+    logs = out / LOGS
     logs.mkdir(exist_ok=True)
     star = topology == "star"
-    children = [Child("plant", base + ["plant", str(scenario_path), "--out", str(out), "--listen", endpoint,
-                                       "--quiet"] + (["--mode", "router"] if star else [])
-                      + (["--model", plant_model] if plant_model else []) + common,
-                      logs / "plant.log")]
+    if plant_timeout is None:
+        head = Child(keys.PLANT_ROLE, base + ["plant", str(scenario_path), "--out", str(out), "--listen", endpoint,
+                                              "--quiet"]
+                     + (["--mode", "router"] if star else []) + (["--model", plant_model] if plant_model else [])
+                     + common, logs / log_file(keys.PLANT_ROLE))
+    else:
+        head = Child(keys.COORDINATOR_ROLE, base + ["coordinator", str(scenario_path), "--plant", "external",
+                                                     "--plant-timeout", str(plant_timeout), "--out", str(out),
+                                                     "--listen", endpoint, "--quiet"]
+                     + (["--mode", "router"] if star else []) + common, logs / log_file(keys.COORDINATOR_ROLE))
+    children = [head]
     agent_net = ["--mode", "client"] if star else ["--listen", f"{proto}/127.0.0.1:0"]
     agent_common = [arg for arg in common if arg not in ("--design", str(design_path))]
-    for name in prepared.names:
-        children.append(Child(f"agent-{name}", base + ["agent", str(out / BUNDLE), "--id", name, "--connect", endpoint]
-                              + agent_net + agent_common + ["--report", str(logs / f"agent-{name}.json")],
-                              logs / f"agent-{name}.log"))
+    for host in group_agents(prepared.names, agents_per_process):
+        ids = [arg for name in host.agents for arg in ("--id", name)]
+        report = logs / report_file(keys.agent_role(host.agents[0] if len(host.agents) == 1 else "{id}"))
+        children.append(Child(host.role, base + ["agent", str(out / BUNDLE), *ids, "--connect", endpoint]
+                              + agent_net + agent_common + ["--report", str(report)],
+                              logs / log_file(host.role), agents=host.agents))
     return children
 
 
-def start(children: list[Child], pump: LogPump | None = None) -> None:
-    """Start the children; their output goes to their log files, through ``pump`` if given."""
+def start(children: list[Child], pump: LogPump | None = None, forks: ForkServer | None = None) -> None:
+    """Start the children; their output goes to their log files, through ``pump`` if given.
+    Agent processes are forked by ``forks`` all at once when given (exec where that fails)."""
+    if forks is not None and pump is not None:
+        _fork_all([c for c in children if _forkable(c)], pump, forks)
     for child in children:
-        spawn(child, pump)
+        if child.proc is None:
+            spawn(child, pump)
 
 
-def spawn(child: Child, pump: LogPump | None = None) -> None:
-    """Start (or restart) one child, its SIGTERM tied to this process's end."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+def _forkable(child: Child) -> bool:
+    return bool(child.agents) and tuple(child.cmd[:3]) == DMPC
+
+
+def _fork_all(children: list[Child], pump: LogPump, forks: ForkServer) -> None:
+    pipes = [os.pipe() for _ in children]
+    try:
+        forked = forks.spawn_all([(c.cmd[3:], write_end) for c, (_, write_end) in zip(children, pipes)])
+    except ForkServerError:
+        forked = [None] * len(children)
+    for child, proc, (read_end, write_end) in zip(children, forked, pipes):
+        os.close(write_end)
+        if proc is None:
+            os.close(read_end)
+            continue
+        child.proc = proc
+        pump.add(child.role, read_end, child.log_path)
+
+
+def child_env() -> dict:
+    return dict(os.environ, PYTHONUNBUFFERED="1")
+
+
+def spawn(child: Child, pump: LogPump | None = None, forks: ForkServer | None = None) -> None:
+    """Start (or restart) one child, its SIGTERM tied to this process's end; an agent process is
+    forked by ``forks`` (:mod:`dmpc.runtime.forkserver`) when given and working."""
+    if forks is not None and pump is not None and _forkable(child) and forks.alive:
+        read_end, write_end = os.pipe()
+        try:
+            child.proc = forks.spawn(child.cmd[3:], write_end)
+        except ForkServerError:
+            os.close(read_end)  # started with exec below
+        else:
+            pump.add(child.role, read_end, child.log_path)
+            return
+        finally:
+            os.close(write_end)
+    env = child_env()
     if pump is None:
         log = open(child.log_path, "ab")
         try:
@@ -241,7 +303,8 @@ def tail(path: Path, lines: int = 5) -> str:
 def launch(prepared: Prepared, out: Path, run_id: str, startup_timeout: float = 30.0, show_progress: bool = True,
            extra_args: list[str] | None = None, tls_dir: Path | None = None, secure: bool = False,
            topology: str = "mesh", on_ready=None, plant_model: str | None = None,
-           policy: RestartPolicy | None = None) -> LaunchResult:
+           policy: RestartPolicy | None = None, plant_timeout: float | None = None,
+           port: int | None = None, agents_per_process: int = 1) -> LaunchResult:
     """Run the plant and M agents as processes; returns when all have exited.
 
     ``tls_dir`` runs every link over TLS with that certificate directory; ``secure`` first
@@ -249,36 +312,51 @@ def launch(prepared: Prepared, out: Path, run_id: str, startup_timeout: float = 
     ``on_ready(out, run_id, endpoint, tls_dir)`` is called when the run folder is ready and
     before any process starts (``dmpc run --watch`` starts its observer there), and again with
     the new endpoint if the plant's port was taken and the run starts again on another.
+
+    ``plant_timeout`` starts the coordinator without a plant and waits for an outside one
+    (docs/protocol.md); ``port`` fixes the local port the coordinator listens on (default: a
+    free one, chosen again if it is taken meanwhile).
+
+    ``agents_per_process``: each agent process serves up to this many agents
+    (:mod:`dmpc.runtime.hosting`); a restart or a crash concerns the whole process.
     """
     scenario_path, design_path = prepare_run_folder(out, prepared)
     if secure:
-        from dmpc.security.certs import make_run_security
+        from dmpc.security.certs import make_run_security  # start-up time: cryptography only for --secure
 
-        tls_dir = out / "tls"
+        tls_dir = out / TLS
         make_run_security(tls_dir, prepared.system, run_id=run_id)
     policy = policy or RestartPolicy()
     if show_progress:
         agents = len(prepared.names)
-        stderr_console().print(f"starting {agents + 1} processes: the plant and {agents} agents "
-                               f"({topology}{', TLS' if tls_dir is not None else ''}); logs in {out / 'logs'}")
-    for attempt in range(PORT_ATTEMPTS):
-        port = free_port()
+        hosts = len(group_agents(prepared.names, agents_per_process))
+        head = "the plant" if plant_timeout is None else "the coordinator (the plant is outside)"
+        served = f"{agents} agents" if hosts == agents else f"{agents} agents in {hosts} processes"
+        stderr_console().print(f"starting {hosts + 1} processes: {head} and {served} "
+                               f"({topology}{', TLS' if tls_dir is not None else ''}); logs in {out / LOGS}")
+    fixed = port
+    for attempt in range(1 if fixed is not None else PORT_ATTEMPTS):
+        port = fixed if fixed is not None else free_port()
         children = child_commands(prepared, out, scenario_path, design_path, run_id, port, startup_timeout,
-                                  extra_args, tls_dir, topology, plant_model)
+                                  extra_args, tls_dir, topology, plant_model, plant_timeout, agents_per_process)
+        endpoint = f"{'tcp' if tls_dir is None else 'tls'}/127.0.0.1:{port}"
         if on_ready is not None:
-            on_ready(out, run_id, f"{'tcp' if tls_dir is None else 'tls'}/127.0.0.1:{port}", tls_dir)
+            on_ready(out, run_id, endpoint, tls_dir)
+        if plant_timeout is not None:
+            stderr_console().print(f"waiting for the plant: connect it to {endpoint} with run id {run_id} "
+                                   f"(docs/protocol.md)")
         result = _supervise(children, prepared, out, show_progress, policy)
-        if not _port_clash(result, out) or attempt == PORT_ATTEMPTS - 1:
+        if fixed is not None or not _port_clash(result, children[0].role, out) or attempt == PORT_ATTEMPTS - 1:
             return result
         if show_progress:
             stderr_console().print(f"port {port} was taken before the plant could bind it: starting again on another")
     return result
 
 
-def _port_clash(result: LaunchResult, out: Path) -> bool:
-    """True if the plant failed to bind its port before any step was recorded."""
-    return ("plant" in result.failed and "Address already in use" in result.message
-            and StepCounter(out / STEP_LOG).update() == 0)
+def _port_clash(result: LaunchResult, head: str, out: Path) -> bool:
+    """True if the process that listens (role ``head``) could not bind its port
+    (``EXIT_ADDRESS_IN_USE``) before any step was recorded."""
+    return result.failed.get(head) == EXIT_ADDRESS_IN_USE and StepCounter(out / STEP_LOG).update() == 0
 
 
 def _supervise(children: list[Child], prepared: Prepared, out: Path, show_progress: bool,
@@ -287,9 +365,14 @@ def _supervise(children: list[Child], prepared: Prepared, out: Path, show_progre
     pump = LogPump()
     progress = None
     supervisor = None
+    forks = None
+    launched_at = time.monotonic()
     try:
-        start(children, pump)
-        write_json(out / "processes.json", {c.role: c.pid for c in children})
+        head = [c for c in children if not c.agents]
+        start(head, pump)  # the plant imports and loads while the fork server does
+        forks = _fork_server(children[0].log_path.parent)
+        start([c for c in children if c.agents], pump, forks)
+        write_json(out / PROCESSES, {c.role: c.pid for c in children})
         counter = StepCounter(out / STEP_LOG)
         if show_progress:
             progress = Progress(TextColumn("[bold]steps"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
@@ -303,16 +386,17 @@ def _supervise(children: list[Child], prepared: Prepared, out: Path, show_progre
                 progress.update(task, completed=done)
 
         def respawn(child: Child) -> None:
-            spawn(child, pump)
-            write_json(out / "processes.json", {c.role: c.pid for c in children})
+            spawn(child, pump, forks)
+            write_json(out / PROCESSES, {c.role: c.pid for c in children})
 
         supervisor = Supervisor(children, respawn, policy, on_tick=tick)
         ending = supervisor.run()
         stop_all(children)
-        return _result(children, out, ending.failed, pump, supervisor.record, ending.message)
+        return _result(children, out, ending.failed, pump, supervisor.record, ending.message, launched_at)
     except KeyboardInterrupt:
         stop_all(children)
-        result = _result(children, out, {}, pump, supervisor.record if supervisor is not None else None)
+        result = _result(children, out, {}, pump, supervisor.record if supervisor is not None else None,
+                         launched_at=launched_at)
         return LaunchResult(EXIT_INTERRUPTED, "interrupted: every process stopped; completed steps are in the run "
                                               "folder", result.summary)
     finally:
@@ -320,7 +404,18 @@ def _supervise(children: list[Child], prepared: Prepared, out: Path, show_progre
             progress.stop()
         if any(c.poll() is None for c in children):
             stop_all(children, signal.SIGTERM)
+        if forks is not None:
+            forks.close()
         pump.close()
+
+
+def _fork_server(logs: Path) -> ForkServer | None:
+    """A fork server for the agent processes, or None (they are then started with exec)."""
+    try:
+        return ForkServer(child_env(), logs / "forkserver.log")
+    except (ForkServerError, OSError) as exc:
+        stderr_console().print(f"agents started one by one with exec: {exc}")
+        return None
 
 
 def security_entry(children: list[Child]) -> dict | None:
@@ -332,31 +427,36 @@ def security_entry(children: list[Child]) -> dict | None:
     if "--tls" not in cmd:
         return None
     tls_dir = Path(cmd[cmd.index("--tls") + 1])
-    return {"tls": True, "mutual_authentication": True, "access_control": (tls_dir / "acl.json").is_file(),
+    return {"tls": True, "mutual_authentication": True, "access_control": (tls_dir / ACL_FILE).is_file(),
             "certificates": str(tls_dir)}
 
 
-def merge_agent_reports(out: Path, children: list[Child], record: Supervision | None = None) -> dict | None:
+def merge_agent_reports(out: Path, children: list[Child], record: Supervision | None = None,
+                        launched_at: float | None = None) -> dict | None:
     """Add the agents' reports to ``summary.json`` (see :mod:`dmpc.records.agent_reports`), and
-    what the launcher knows: for a run over TLS :func:`security_entry` as ``security``, and with
-    ``record`` the agents restarted and lost as ``launcher``. None if the plant wrote no summary.
+    what the launcher knows: for a run over TLS :func:`security_entry` as ``security``, with
+    ``record`` the agent processes restarted and lost as ``launcher``, and with ``launched_at``
+    (when the processes were started) ``startup_s``. None if the plant wrote no summary.
     """
-    names = [c.role[len("agent-"):] for c in children if c.role.startswith("agent-")]
+    names = [name for child in children for name in child.agents]
     extra = {}
     security = security_entry(children)
     if security is not None:
         extra["security"] = security
     if record is not None:
         extra["launcher"] = record.to_json()
-    return merge_reports(out, names, extra)
+        hosted = {c.role: list(c.agents) for c in children if len(c.agents) > 1}
+        if hosted:
+            extra["launcher"]["hosts"] = hosted
+    return merge_reports(out, names, extra, launched_at)
 
 
 def _result(children: list[Child], out: Path, failed: dict[str, int], pump: LogPump | None = None,
-            record: Supervision | None = None, message: str = "") -> LaunchResult:
-    summary = merge_agent_reports(out, children, record)
+            record: Supervision | None = None, message: str = "", launched_at: float | None = None) -> LaunchResult:
+    summary = merge_agent_reports(out, children, record, launched_at)
     if not failed:
         note = restart_note(record) if record is not None else ""
-        return LaunchResult(0, f"finished ({note})" if note else "finished", summary)
+        return LaunchResult(EXIT_OK, f"finished ({note})" if note else "finished", summary)
     lines = [message] if message else []
     for child in children:
         if child.role in failed:
@@ -364,4 +464,4 @@ def _result(children: list[Child], out: Path, failed: dict[str, int], pump: LogP
             broken = pump.log_failed(child.role) if pump is not None else ""
             where = f"log {child.log_path}" + (f", which could not be written: {broken}" if broken else "")
             lines.append(f"{child.role} exited with code {failed[child.role]} ({where}):\n{said}")
-    return LaunchResult(1, "\n".join(lines), summary, failed)
+    return LaunchResult(EXIT_FAILED, "\n".join(lines), summary, failed)

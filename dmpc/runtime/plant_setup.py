@@ -10,69 +10,18 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dmpc.plant.disturbance import DisturbanceSequence, gaussian_sequence, uniform_sequence
-from dmpc.plant.dynamics import Plant
-from dmpc.plant.models import FunctionPlant, MatrixPlant, PlantFunction
+from dmpc.run_spec import PlantFunction, PlantSetup, Prepared
+from dmpc.scenario import Scenario, ScenarioError, discrete_model
 from dmpc.system import CoupledSystem
 
-if TYPE_CHECKING:
-    from dmpc.runtime.setup import Prepared
-    from dmpc.scenario import Scenario
 
-DISTURBANCE_FILE = "disturbance.npy"
-"""The run folder's copy of the disturbance sequence w, shape (steps, n)."""
-
-
-@dataclass(frozen=True, eq=False)
-class PlantSetup:
-    """The plant's model and disturbance for one run.
-
-    Attributes
-    ----------
-    model : str
-        ``nominal`` (the controllers' model), ``exact`` (A, B below) or ``function``.
-    A, B : ndarray or None
-        The plant's matrices for ``exact``: (n, n) and (n, m).
-    disturbance : ndarray or None
-        w(k), shape (steps, n); None without a disturbance.
-    disturbance_kind : str
-        ``uniform``, ``gaussian``, ``file`` or "".
-    disturbance_bound : ndarray or None
-        |w| <= this, shape (n,): the box of a ``uniform`` disturbance, the largest |w| per state of
-        a ``file``; None for ``gaussian`` (unbounded) or without a disturbance.
-    function : callable (x, u, k) -> x_next, or None
-        The user's plant for ``function``.
-    function_name : str
-        How the function is named (``module:function``).
-    """
-
-    model: str = "nominal"
-    A: np.ndarray | None = None
-    B: np.ndarray | None = None
-    disturbance: np.ndarray | None = None
-    disturbance_kind: str = ""
-    disturbance_bound: np.ndarray | None = None
-    function: PlantFunction | None = None
-    function_name: str = ""
-
-    def describe(self) -> dict:
-        """What the plant was, for ``summary.json`` (``plant``)."""
-        out: dict = {"model": self.model}
-        if self.function_name:
-            out["function"] = self.function_name
-        if self.disturbance is not None:
-            out["disturbance"] = self.disturbance_kind
-            out["disturbance_max_abs"] = float(np.max(np.abs(self.disturbance), initial=0.0))
-        return out
-
-
-def plant_setup(scenario: "Scenario", system: CoupledSystem, steps: int) -> PlantSetup:
+def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantSetup:
     """The scenario's ``plant`` section for a run of ``steps`` steps.
 
     Raises
@@ -83,8 +32,6 @@ def plant_setup(scenario: "Scenario", system: CoupledSystem, steps: int) -> Plan
     spec = scenario.plant
     A = B = None
     if spec.model == "exact":
-        from dmpc.scenario import discrete_model
-
         model = discrete_model(scenario)
         A, B = model.A_exact, model.B_exact
     w, kind, bound = None, "", None
@@ -107,7 +54,7 @@ def _per_state(system: CoupledSystem, by_name: dict[str, list[float]] | None) ->
     return out
 
 
-def _disturbance(scenario: "Scenario", system: CoupledSystem, steps: int) -> np.ndarray:
+def _disturbance(scenario: Scenario, system: CoupledSystem, steps: int) -> np.ndarray:
     spec = scenario.plant.disturbance
     seed = scenario.seed if spec.seed is None else spec.seed
     if spec.kind == "uniform":
@@ -125,8 +72,6 @@ def read_disturbance(path: Path, n: int, steps: int) -> np.ndarray:
     ScenarioError
         Unreadable, not 2-D numbers, fewer than ``steps`` rows, or not ``n`` columns.
     """
-    from dmpc.scenario import ScenarioError
-
     field = "plant.disturbance.file"
     try:
         if path.suffix == ".npy":
@@ -163,18 +108,7 @@ def disturbance_bounds(setup: PlantSetup, system: CoupledSystem) -> dict[int, np
     return {i: bound[system.xs(i)] for i in range(system.M)}
 
 
-def make_plant(prepared: "Prepared", x0: np.ndarray | None = None) -> Plant:
-    """The plant a run steps: its model (nominal, exact or the user's function) and disturbance."""
-    setup, system = prepared.plant, prepared.system
-    w = None if setup.disturbance is None else DisturbanceSequence(setup.disturbance)
-    if setup.function is not None:
-        return FunctionPlant(system, setup.function, setup.function_name, x0=x0, disturbance=w)
-    if setup.A is not None:
-        return MatrixPlant(system, setup.A, setup.B, x0=x0, disturbance=w)
-    return Plant(system, x0, disturbance=w)
-
-
-def with_plant_function(prepared: "Prepared", function: PlantFunction, name: str = "") -> "Prepared":
+def with_plant_function(prepared: Prepared, function: PlantFunction, name: str = "") -> Prepared:
     """``prepared`` whose plant is ``function`` (x, u, k) -> x_next (the disturbance is kept)."""
     if not callable(function):
         raise TypeError(f"the plant must be a function (x, u, k) -> x_next, got {type(function).__name__}")

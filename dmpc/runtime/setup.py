@@ -1,87 +1,17 @@
 """From a validated scenario to everything a run needs (system, design, protocol settings)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-import hashlib
-import json
-from dataclasses import dataclass
-
 from dmpc.bus.faults import FaultPlan, LinkFault
 from dmpc.design import Design, DesignError, design_from_json, design_gains
-from dmpc.plant.barrier import ProtocolOptions
+from dmpc.run_spec import Prepared, design_digest
 from dmpc.runtime.horizon import StartCheck, auto_beta0
-from dmpc.runtime.plant_setup import PlantSetup, disturbance_bounds, plant_setup
+from dmpc.runtime.plant_setup import disturbance_bounds, plant_setup
+from dmpc.scenario import (Scenario, ScenarioError, alpha0_vector, build_system, discrete_model, given_gains,
+                           revision_bounds)
+from dmpc.steps import ProtocolOptions
 from dmpc.system import CoupledSystem
 
 AUTO = "auto"
-
-if TYPE_CHECKING:  # the scenario package needs pydantic, which agent processes can do without
-    from dmpc.scenario import Scenario
-
-
-@dataclass(frozen=True)
-class Prepared:
-    """A scenario ready to run.
-
-    Attributes
-    ----------
-    scenario : Scenario or None
-        None when loaded from a run bundle (dmpc.runtime.bundle).
-    system : CoupledSystem
-    design : Design
-    digest : str
-        Short hash of the design; every process of a run must agree on it.
-    protocol : ProtocolOptions
-    mode : str
-    dt : float
-    deadline : float or None
-    faults : FaultPlan
-    name : str
-        The scenario's name.
-    coupling : str
-        ``feedforward`` or ``nominal``.
-    method : str
-        The control method (:mod:`dmpc.methods`), ``tv-box`` by default.
-    plant : PlantSetup
-        What the plant simulates (model, disturbance, the user's function); the nominal model by default.
-    model : dict or None
-        For ``time: continuous``, the discretisation (``dmpc.discretisation.DiscreteModel.to_json``).
-    """
-
-    scenario: "Scenario | None"
-    system: CoupledSystem
-    design: Design
-    digest: str
-    protocol: ProtocolOptions
-    mode: str
-    dt: float
-    deadline: float | None
-    faults: FaultPlan = FaultPlan()
-    name: str = "scenario"
-    coupling: str = "feedforward"
-    method: str = "tv-box"
-    plant: PlantSetup = PlantSetup()
-    model: dict | None = None
-
-    @property
-    def names(self) -> list[str]:
-        return [s.name for s in self.system.subsystems]
-
-    def design_json(self) -> dict:
-        """The content of ``design.json``: the design, its digest, and how its horizon and beta0 were chosen."""
-        data = self.design.to_json()
-        data["digest"] = self.digest
-        if self.design.start is not None:
-            data["start"] = self.design.start
-        if self.model is not None:
-            data["model"] = self.model
-        return data
-
-    @property
-    def plan_wait(self) -> float | None:
-        """How long an agent waits for a referenced neighbour plan (half the deadline)."""
-        return None if self.deadline is None else 0.5 * self.deadline
 
 
 def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | None = None,
@@ -93,8 +23,6 @@ def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | No
     it was made with. ``disturbances`` (per subsystem index, the bound (n_i,) of an additive plant
     disturbance) widen the tube of ``options.tube: robust``.
     """
-    from dmpc.scenario import alpha0_vector, given_gains, revision_bounds
-
     alpha0 = alpha0_vector(scenario, system)
     bounds = revision_bounds(scenario)
     tube = scenario.options.tube
@@ -129,20 +57,9 @@ def protocol_options(scenario: Scenario, steps: int | None = None) -> ProtocolOp
                            initial_iterations=opts.initial_iterations, initial_tolerance=opts.initial_tolerance)
 
 
-def design_digest(design: Design, method: str = "tv-box") -> str:
-    """Short hash of the design, and of the method unless it is the default ``tv-box``."""
-    data = design.to_json()
-    if method != "tv-box":
-        data["method"] = method
-    text = json.dumps(data, sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
 def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | None = None) -> Prepared:
     """Build the system and the design; ``steps`` overrides the scenario's; ``design_data``
     (``design.json`` content) skips the offline solves."""
-    from dmpc.scenario import build_system
-
     system = build_system(scenario)
     protocol = protocol_options(scenario, steps)
     plant = plant_setup(scenario, system, protocol.steps)
@@ -153,8 +70,6 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
         deadline = opts.dt
     lossy = scenario.faults.loss > 0 or any(link.loss > 0 for link in scenario.faults.links)
     if lossy and deadline is None:
-        from dmpc.scenario import ScenarioError
-
         raise ScenarioError("faults.loss: lost messages need a deadline in lockstep mode, or the run would wait "
                             "for them forever: set options.deadline (--deadline S) or options.mode: realtime",
                             field="faults.loss")
@@ -168,7 +83,6 @@ def _model_report(scenario: Scenario) -> dict | None:
     """The discretisation of a continuous-time scenario, for design.json (None in discrete time)."""
     if scenario.time != "continuous":
         return None
-    from dmpc.scenario import discrete_model
 
     return discrete_model(scenario).to_json()
 

@@ -97,7 +97,7 @@ class Supervisor:
             code = self.plant.poll()
             if code is not None:
                 if code not in FINISHED:
-                    return Ending({"plant": code})
+                    return Ending({self.plant.role: code})
                 self._wait_for_agents()
                 return Ending({})
             ending = self._check_agents()

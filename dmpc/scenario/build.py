@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dmpc.design.tubes import RevisionBound
 from dmpc.scenario.load import ScenarioError
 from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario
 from dmpc.system import CoupledSystem, Coupling, LinearSet, Subsystem
@@ -128,7 +129,5 @@ def alpha0_vector(scn: Scenario, system: CoupledSystem) -> np.ndarray:
 
 def revision_bounds(scn: Scenario) -> dict:
     """``{index: dmpc.design.tubes.RevisionBound}`` for the subsystems that declare one."""
-    from dmpc.design.tubes import RevisionBound  # lazy: keeps the scenario package light
-
     return {i: RevisionBound(state=_array(s.revision_bound.state), input=_array(s.revision_bound.input))
             for i, s in enumerate(scn.resolved_subsystems()) if s.revision_bound is not None}

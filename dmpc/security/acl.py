@@ -7,8 +7,11 @@ role           may publish (put, liveliness token)    may subscribe to
 =============  =====================================  ==========================================
 agent-I        plan/I, ready/I; token alive/agent-I   release, plan/J for J in N_I, control,
                                                       alive/*
-plant          release, control; token alive/plant    plan/*, ready/*, alive/*
+coordinator    release, control, inputs, telemetry/*; plan/*, ready/*, state/*, alive/*
+               token alive/coordinator
                (relays as a router: plan/*, alive/*)
+plant          state/plant; token alive/plant         inputs, control, alive/*
+sensor-I       state/sensor-I; token alive/sensor-I   inputs, control, alive/*
 router         relays: everything under dmpc/R/**     everything under dmpc/R/**
 observer       nothing                                telemetry/*, alive/* (``dmpc watch``)
 =============  =====================================  ==========================================
@@ -76,11 +79,18 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
                                               f"{rid} receive", "declarations"], "subjects": [rid]})
 
     rules.append(_rule("declarations", "egress", _DECLARES + ["liveliness_query"], [root]))
-    # In the star topology the plant's session is the agents' router: it forwards their plans
-    # and liveliness tokens, which every agent already checked at that first hop. So the plant
-    # may bring in plans and tokens of any role; it is the run's root of trust in any case.
-    role("plant", [keys.release(R), keys.control(R), keys.plan(R, "*"), keys.telemetry_prefix(R)],
-         [keys.plan(R, "*"), keys.ready(R, "*")], [alive_all], [keys.plan(R, "*"), keys.ready(R, "*")])
+    # In the star topology the coordinator's session is the agents' router: it forwards their
+    # plans and liveliness tokens, which every agent already checked at that first hop. So the
+    # coordinator may bring in plans and tokens of any role; it is the run's root of trust anyway.
+    states = keys.state_prefix(R)
+    role(keys.COORDINATOR_ROLE, [keys.release(R), keys.control(R), keys.inputs(R), keys.plan(R, "*"),
+                                 keys.telemetry_prefix(R)],
+         [keys.plan(R, "*"), keys.ready(R, "*"), states], [alive_all],
+         [keys.plan(R, "*"), keys.ready(R, "*"), states])
+    # the plant, or one sensor per subsystem, may publish its own state and nothing else
+    for source in [keys.PLANT_ROLE] + [keys.sensor_role(name) for name in names]:
+        subs = [keys.inputs(R), keys.control(R)]
+        role(source, [keys.state(R, source)], subs, [keys.alive(R, source)], subs)
     for name in names:
         own = keys.agent_role(name)
         subs = [keys.release(R), keys.control(R)] + [keys.plan(R, j) for j in neighbours[name]]

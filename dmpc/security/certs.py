@@ -1,7 +1,9 @@
 """Certificates for TLS links with mutual authentication: one CA, one certificate per role.
 
-Roles are ``router``, ``plant`` and ``agent-<name>`` (the liveliness role names of
-``bus.keys``), and ``observer`` for ``dmpc watch`` (it may only listen). Each certificate's common name is its role: Zenoh's access control binds its
+Roles are ``router``, ``coordinator``, ``plant``, ``agent-<name>`` and ``sensor-<name>`` (the
+liveliness role names of ``bus.keys``), and ``observer`` for ``dmpc watch`` (it may only listen).
+A process that hosts the coordinator and the simulated plant together uses ``coordinator``.
+Each certificate's common name is its role: Zenoh's access control binds its
 subjects to these names (``cert_common_names``). Every certificate carries the subject
 alternative names of the hosts it may be reached at, so that a peer connecting to
 ``tls/<host>:<port>`` can verify it (a process that listens is a TLS server).
@@ -26,6 +28,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from dmpc.bus.session import TlsFiles
+from dmpc.security.acl import scenario_access_control, write_acl
 from dmpc.security.files import CA_CERT, CA_KEY, cert_path, key_path, role_names
 
 DEFAULT_HOSTS = ("127.0.0.1", "localhost")
@@ -165,8 +168,6 @@ def make_run_security(directory: str | Path, system, hosts: Sequence[str] = DEFA
         The directory already holds a CA (without ``force``), a host or run id is malformed, or
         the directory cannot be written.
     """
-    from dmpc.security.acl import scenario_access_control, write_acl
-
     directory = Path(directory)
     if (directory / CA_CERT).exists() and not force:
         raise ValueError(f"{directory} already holds certificates ({CA_CERT}): choose another directory "

@@ -8,15 +8,20 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
+from dmpc.bus import keys
 from dmpc.bus.session import TlsFiles
+from dmpc.security.acl import read_acl
 
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"
 
 
 def role_names(agent_names: Iterable[str]) -> list[str]:
-    """``router``, ``plant``, ``agent-<name>`` for every agent and ``observer``, in that order."""
-    return ["router", "plant"] + [f"agent-{name}" for name in agent_names] + ["observer"]
+    """``router``, ``coordinator``, ``plant``, ``agent-<name>`` and ``sensor-<name>`` for every
+    subsystem, and ``observer``, in that order."""
+    names = list(agent_names)
+    return (["router", keys.COORDINATOR_ROLE, keys.PLANT_ROLE] + [keys.agent_role(name) for name in names]
+            + [keys.sensor_role(name) for name in names] + ["observer"])
 
 
 def cert_path(directory: str | Path, role: str) -> Path:
@@ -51,8 +56,6 @@ def node_security(directory: str | Path, role: str) -> tuple[TlsFiles, dict | No
     ValueError
         A missing file or a malformed ``acl.json``, named in the message.
     """
-    from dmpc.security.acl import read_acl
-
     if not Path(directory).is_dir():
         raise ValueError(f"--tls {directory}: no such directory "
                          f"(make it with 'dmpc certs {directory} --scenario SCENARIO')")

@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+from dmpc.records.files import LOGS, log_file
 from dmpc.runtime.launcher import Child, free_port, start, stop_all
 
 READY_TIMEOUT = 20.0  # seconds to wait for the page's server before starting the run anyway
@@ -53,8 +54,8 @@ class Watcher:
         self._port = port
         cmd = [sys.executable, "-m", "dmpc.cli", "watch", str(out), "--connect", endpoint, "--run-id", run_id,
                "--port", str(port)] + ([] if tls_dir is None else ["--tls", str(tls_dir)])
-        (out / "logs").mkdir(exist_ok=True)
-        self.child = Child("watch", cmd, out / "logs" / "watch.log")
+        (out / LOGS).mkdir(exist_ok=True)
+        self.child = Child("watch", cmd, out / LOGS / log_file("watch"))
         start([self.child])
         self.url = f"http://127.0.0.1:{port}/"
         deadline = time.monotonic() + READY_TIMEOUT

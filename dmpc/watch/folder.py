@@ -10,11 +10,13 @@ import json
 import os
 from pathlib import Path
 
+from dmpc.records.files import BUNDLE, DESIGN, SCENARIO, STEP_LOG, SUMMARY
+from dmpc.run_bundle import load_bundle
+from dmpc.runtime.setup import prepare
+from dmpc.scenario import load_scenario
 from dmpc.watch.meta import RunMeta, meta_json
 from dmpc.watch.state import RunState
 
-STEP_LOG = "steps.jsonl"
-SUMMARY = "summary.json"
 CHUNK = 8 << 20  # bytes of the step log read at most per poll, so a huge log cannot stall the page
 
 
@@ -35,29 +37,26 @@ def folder_meta(path: Path, run_id: str = "") -> RunMeta:
     try:
         prepared = _from_scenario(path)
     except FolderError:
-        if not (path / "run.json").is_file():
+        if not (path / BUNDLE).is_file():
             raise
-        from dmpc.runtime.bundle import load_bundle
 
         try:
-            prepared = load_bundle(path / "run.json")
+            prepared = load_bundle(path / BUNDLE)
         except ValueError as exc:
             raise FolderError(str(exc)) from None
     return RunMeta.from_json(meta_json(prepared, run_id or path.name))
 
 
 def _from_scenario(path: Path):
-    if not (path / "scenario.yaml").is_file():
-        raise FolderError(f"{path} is not a run folder (it has no scenario.yaml)")
-    from dmpc.runtime.setup import prepare
-    from dmpc.scenario import load_scenario
+    if not (path / SCENARIO).is_file():
+        raise FolderError(f"{path} is not a run folder (it has no {SCENARIO})")
 
     try:
-        design = json.loads((path / "design.json").read_text())
+        design = json.loads((path / DESIGN).read_text())
     except (OSError, json.JSONDecodeError) as exc:
-        raise FolderError(f"{path}: cannot read design.json ({exc})") from None
+        raise FolderError(f"{path}: cannot read {DESIGN} ({exc})") from None
     try:
-        return prepare(load_scenario(path / "scenario.yaml"), design_data=design)
+        return prepare(load_scenario(path / SCENARIO), design_data=design)
     except Exception as exc:  # a scenario or design that does not load: say which folder
         raise FolderError(f"{path}: cannot read the run's scenario ({type(exc).__name__}: {exc})") from None
 

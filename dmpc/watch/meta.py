@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dmpc.quantities import quantities
 from dmpc.system import box_hull
 
 META_VERSION = 1
@@ -32,7 +33,6 @@ def _labels(prepared) -> dict[str, tuple[list, list]]:
     """Names and units of each subsystem's states and inputs, where the scenario gives them."""
     if prepared.scenario is None:  # a run bundle: the scenario's labels did not travel
         return {}
-    from dmpc.quantities import quantities
 
     states, inputs = quantities(prepared.scenario)
     return {name: ([[q.name, q.unit] for q in states[name]], [[q.name, q.unit] for q in inputs[name]])
@@ -44,7 +44,7 @@ def meta_json(prepared, run_id: str) -> dict:
 
     Parameters
     ----------
-    prepared : dmpc.runtime.setup.Prepared
+    prepared : dmpc.run_spec.Prepared
     run_id : str
 
     Returns

@@ -16,6 +16,7 @@ import threading
 
 from dmpc.bus import keys
 from dmpc.bus.session import BusError, session_config
+from dmpc.bus.zenoh_bus import ZenohBus
 from dmpc.watch.meta import RunMeta
 from dmpc.watch.state import RunState
 from dmpc.watch.telemetry import MAX_PAYLOAD, TelemetryError, decode
@@ -67,8 +68,6 @@ class BusObserver:
 
     # -- on the observer's thread ------------------------------------------------------------
     def _main(self) -> None:
-        from dmpc.bus.zenoh_bus import ZenohBus
-
         where = ", ".join(self.connect)
         self.state.set_connection(f"connecting to {where}")
         while not self._stop.is_set():

@@ -18,6 +18,7 @@ from bokeh.models import ColumnDataSource, Div, HoverTool, InlineStyleSheet, Ran
 from bokeh.palettes import Category10_10
 from bokeh.plotting import figure
 
+from dmpc.bus import keys
 from dmpc.watch.state import RunState, StateRow, StepRow
 from dmpc.watch.views import (AgentHistory, agent_states, agent_table, graph_tables, readout_html, summary_html,
                               table_html, verdict_of)
@@ -302,7 +303,8 @@ class WatchPage:
         snap = self.snap
         if not self.live or not self.follow or snap is None or snap.ended:
             return None
-        tokens = {role[len("agent-"):]: alive for role, alive in snap.alive.items() if role.startswith("agent-")}
+        agents = {keys.subsystem_of(role, keys.AGENT_PREFIX): alive for role, alive in snap.alive.items()}
+        tokens = {name: alive for name, alive in agents.items() if name is not None}
         if not tokens and snap.plant.get("alive") is not None:
             tokens = {name: name in snap.plant["alive"] for name in self.meta.names}
         return tokens or None
@@ -328,7 +330,7 @@ class WatchPage:
         alive = self.history.alive(n)
         alive.update(self._alive_now() or {})
         snap = self.snap
-        plant_alive = not (self.live and snap is not None and snap.alive.get("plant") is False and self.follow
+        plant_alive = not (self.live and snap is not None and snap.alive.get(keys.COORDINATOR_ROLE) is False and self.follow
                            and snap.summary is None)
         nodes, edges = graph_tables(self.meta, agent_states(self.meta, last, alive), plant_alive)
         _set(self.nodes, "data", nodes)

@@ -69,7 +69,7 @@ class WatchServer:
         from tornado.httpserver import HTTPServer
         from tornado.ioloop import IOLoop, PeriodicCallback
 
-        from dmpc.watch.page import page_factory
+        from dmpc.watch.page import page_factory  # start-up time: bokeh once the server starts, as above
 
         self._loop = IOLoop.current()
         # bound first: the websocket origins name the port

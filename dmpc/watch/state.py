@@ -11,6 +11,7 @@ import math
 import threading
 from dataclasses import dataclass, field
 
+from dmpc.bus import keys
 from dmpc.watch.meta import RunMeta
 
 
@@ -178,7 +179,7 @@ class RunState:
     def set_alive(self, role: str, alive: bool) -> None:
         with self._lock:
             self.alive[role] = alive
-            if role == "plant" and not alive:
+            if role == keys.COORDINATOR_ROLE and not alive:
                 self.plant_gone = True
             self._changed()
 

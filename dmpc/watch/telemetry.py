@@ -22,6 +22,7 @@ import time
 
 from dmpc.bus import keys
 from dmpc.records.run_folder import jsonable, step_line  # noqa: F401 - step_line: the telemetry's step message
+from dmpc.watch.meta import meta_json
 
 KINDS = ("step", "meta", "end")
 ENCODING = "application/json"
@@ -193,6 +194,5 @@ def open_telemetry(bus, run_id: str, prepared) -> Telemetry | None:
     session = getattr(bus, "session", None)
     if session is None:
         return None
-    from dmpc.watch.meta import meta_json
 
     return Telemetry(session, run_id, meta_json(prepared, run_id))

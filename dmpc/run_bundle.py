@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dmpc.bus.faults import FaultPlan, LinkFault
+from dmpc.bus.faults import FaultPlan
 from dmpc.design import design_from_json
 from dmpc.design.tubes import Tightening
-from dmpc.plant.barrier import ProtocolOptions
-from dmpc.runtime.setup import Prepared, design_digest
+from dmpc.run_spec import Prepared, design_digest
+from dmpc.steps import ProtocolOptions
 from dmpc.system import Coupling, CoupledSystem, LinearSet, Subsystem
 
-BUNDLE_VERSION = 1
+BUNDLE_VERSION = 2
 
 
 def _set_json(s: LinearSet | None) -> dict | None:
@@ -40,10 +40,21 @@ def _set_from(d: dict | None) -> LinearSet | None:
     return LinearSet(np.array(d["H"], float), np.array(d["lower"], float), np.array(d["upper"], float))
 
 
+def _sparse_json(a: np.ndarray) -> dict:
+    """A matrix as its shape and nonzero entries (Omega's rows reach a few subsystems each)."""
+    rows, cols = np.nonzero(a)
+    return {"shape": list(a.shape), "rows": rows.tolist(), "cols": cols.tolist(), "values": a[rows, cols].tolist()}
+
+
+def _dense(d: dict) -> np.ndarray:
+    a = np.zeros(tuple(int(v) for v in d["shape"]))
+    a[np.asarray(d["rows"], dtype=np.intp), np.asarray(d["cols"], dtype=np.intp)] = np.asarray(d["values"], float)
+    return a
+
+
 def bundle_json(prepared: Prepared) -> dict:
     """Everything an agent needs, as JSON-ready data."""
     system = prepared.system
-    f = prepared.faults
     return {
         "bundle_version": BUNDLE_VERSION,
         "name": prepared.name,
@@ -55,12 +66,12 @@ def bundle_json(prepared: Prepared) -> dict:
         "couplings": [{"target": c.target, "source": c.source, "A": c.A.tolist(), "B": c.B.tolist()}
                       for c in system.couplings],
         "edges": [list(e) for e in system.edges],
-        "design": prepared.design_json(),
+        "design": {**prepared.design_json(omega=False), "omega": _sparse_json(prepared.design.terminal.omega)},
         "tightening": [{"input": t.input_margin.tolist(), "state": t.state_margin.tolist(),
                         "terminal": t.terminal_margin.tolist()} for t in prepared.design.tightening],
         "protocol": vars(prepared.protocol),
         "mode": prepared.mode, "dt": prepared.dt, "deadline": prepared.deadline,
-        "faults": {"default": vars(f.default), "links": [[s, r, vars(l)] for s, r, l in f.links], "seed": f.seed},
+        "faults": prepared.faults.to_json(),
     }
 
 
@@ -80,17 +91,17 @@ def load_bundle(path: Path) -> Prepared:
         couplings = tuple(Coupling(c["target"], c["source"], np.array(c["A"], float), np.array(c["B"], float))
                           for c in d["couplings"])
         system = CoupledSystem(subsystems, couplings, tuple(tuple(e) for e in d["edges"]))
-        design_data = d["design"]
+        design_data = {**d["design"], "omega": _dense(d["design"]["omega"])}
+        # written by dmpc run from the design it verified, and checked against its digest below
         design = design_from_json(system, design_data, horizon=int(design_data["horizon"]),
-                                  alpha0=np.array(design_data["alpha0"], float), beta0=float(design_data["beta0"]))
+                                  alpha0=np.array(design_data["alpha0"], float), beta0=float(design_data["beta0"]),
+                                  verify=False)
         # the tube margins travel as computed: recomputing them would need the scenario's revision bounds
         tightening = [Tightening(np.array(t["input"], float).reshape(design.horizon, -1),
                                  np.array(t["state"], float).reshape(design.horizon + 1, -1),
                                  np.array(t["terminal"], float)) for t in d["tightening"]]
         design = dataclasses.replace(design, tightening=tightening, tube=design_data["tube"])
-        faults = d["faults"]
-        plan = FaultPlan(default=LinkFault(**faults["default"]),
-                         links=tuple((s, r, LinkFault(**l)) for s, r, l in faults["links"]), seed=int(faults["seed"]))
+        plan = FaultPlan.from_json(d["faults"])
         method = str(d.get("method", "tv-box"))
         prepared = Prepared(scenario=None, system=system, design=design, digest=design_digest(design, method),
                             protocol=ProtocolOptions(**d["protocol"]), mode=d["mode"], dt=float(d["dt"]),

@@ -32,8 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
+from dmpc.records.files import COMPARISON, DESIGN, SCENARIO, STEP_LOG, SUMMARY, TRAJECTORY
+from dmpc.records.step_log import arrays_from_log, read_step_log
+from dmpc.scenario import load_scenario
+from dmpc.scenario.load import ScenarioError
+from dmpc.system import box_hull
+
 FIGURES = ("fig1_terminal_sets", "fig2_states", "fig3_inputs", "fig4_cost", "fig5_S")
-COMPARISON_FILE = "comparison.json"
 MAX_PANELS = 8
 DPI = 120
 LOG_DECADES = 2.0
@@ -119,7 +124,7 @@ class RunData:
 
 def is_comparison_folder(path: Path) -> bool:
     """Whether ``path`` holds a ``comparison.json``."""
-    return (Path(path) / COMPARISON_FILE).is_file()
+    return (Path(path) / COMPARISON).is_file()
 
 
 def _read_json(path: Path) -> dict:
@@ -137,46 +142,42 @@ def _read_json(path: Path) -> dict:
 def _check_run_folder(path: Path) -> None:
     if not path.is_dir():
         raise ReportError(f"{path} is not a folder")
-    markers = ("trajectory.npz", "steps.jsonl", "summary.json", "design.json", "scenario.yaml")
+    markers = (TRAJECTORY, STEP_LOG, SUMMARY, DESIGN, SCENARIO)
     if not any((path / name).exists() for name in markers):
-        raise ReportError(f"{path} is not a run folder (no trajectory.npz, scenario.yaml or design.json) "
-                          f"nor a comparison folder (no {COMPARISON_FILE})")
-    if not (path / "trajectory.npz").is_file() and not (path / "steps.jsonl").is_file():
-        raise ReportError(f"{path} has no trajectory.npz: the run was not completed or is still running "
+        raise ReportError(f"{path} is not a run folder (no {TRAJECTORY}, {SCENARIO} or {DESIGN}) "
+                          f"nor a comparison folder (no {COMPARISON})")
+    if not (path / TRAJECTORY).is_file() and not (path / STEP_LOG).is_file():
+        raise ReportError(f"{path} has no {TRAJECTORY}: the run was not completed or is still running "
                           "(it is written at the end of a run)")
 
 
 def _load_arrays(path: Path, notes: list[str] | None = None) -> dict[str, np.ndarray]:
     """trajectory.npz, or (a run that ended before writing it) the arrays rebuilt from steps.jsonl,
     said in ``notes``."""
-    if not (path / "trajectory.npz").is_file():
-        from dmpc.records.step_log import arrays_from_log, read_step_log
-
+    if not (path / TRAJECTORY).is_file():
         try:
-            log = read_step_log(path / "steps.jsonl")
+            log = read_step_log(path / STEP_LOG)
         except (OSError, ValueError) as exc:
-            raise ReportError(f"{path / 'steps.jsonl'} cannot be read ({exc})") from None
+            raise ReportError(f"{path / STEP_LOG} cannot be read ({exc})") from None
         if not log.steps:
-            raise ReportError(f"{path} has no trajectory.npz and no completed step in steps.jsonl")
+            raise ReportError(f"{path} has no {TRAJECTORY} and no completed step in {STEP_LOG}")
         if notes is not None:
-            notes.append(f"{path}: no trajectory.npz (the run did not finish); drawn from the {len(log.steps)} "
-                         f"steps of steps.jsonl" + (f"; {log.note}" if log.partial else ""))
+            notes.append(f"{path}: no {TRAJECTORY} (the run did not finish); drawn from the {len(log.steps)} "
+                         f"steps of {STEP_LOG}" + (f"; {log.note}" if log.partial else ""))
         return arrays_from_log(log)
     try:
-        with np.load(path / "trajectory.npz") as npz:
+        with np.load(path / TRAJECTORY) as npz:
             arrays = {key: npz[key] for key in npz.files}
     except (OSError, ValueError, EOFError) as exc:
-        raise ReportError(f"{path / 'trajectory.npz'} cannot be read ({exc})") from None
+        raise ReportError(f"{path / TRAJECTORY} cannot be read ({exc})") from None
     for key in ("x", "u"):
         if key not in arrays or arrays[key].ndim != 2:
-            raise ReportError(f"{path / 'trajectory.npz'} has no 2-D array {key!r}: not a run's trajectory")
+            raise ReportError(f"{path / TRAJECTORY} has no 2-D array {key!r}: not a run's trajectory")
     return arrays
 
 
 def _box_hull(H: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-coordinate bounds of the polytope {v : H v <= h} (inf where unbounded)."""
-    from dmpc.system import box_hull
-
     return box_hull(H, np.full(h.shape, -np.inf), h)
 
 
@@ -188,11 +189,9 @@ def _input_bounds(spec) -> tuple[np.ndarray, np.ndarray]:
 
 def _structure_from_scenario(path: Path) -> dict | None:
     """Names, dimensions and input bounds from the run's resolved ``scenario.yaml``."""
-    file = path / "scenario.yaml"
+    file = path / SCENARIO
     if not file.is_file():
         return None
-    from dmpc.scenario import load_scenario
-    from dmpc.scenario.load import ScenarioError
 
     try:
         scn = load_scenario(file)
@@ -253,8 +252,8 @@ def load_run(path, notes: list[str] | None = None) -> RunData:
     path = Path(path)
     _check_run_folder(path)
     arrays = _load_arrays(path, notes)
-    design = _read_json(path / "design.json") if (path / "design.json").is_file() else None
-    summary = _read_json(path / "summary.json") if (path / "summary.json").is_file() else {}
+    design = _read_json(path / DESIGN) if (path / DESIGN).is_file() else None
+    summary = _read_json(path / SUMMARY) if (path / SUMMARY).is_file() else {}
     info = _structure_from_scenario(path) or _structure_from_design(design, path)
     x, u = np.asarray(arrays["x"], float), np.asarray(arrays["u"], float)
     if x.shape[1] != sum(info["n"]) or u.shape[1] != sum(info["m"]):
@@ -322,10 +321,10 @@ def load_comparison(path) -> Comparison:
         ``comparison.json`` is malformed, or no method's run folder can be read.
     """
     path = Path(path)
-    data = _read_json(path / COMPARISON_FILE)
+    data = _read_json(path / COMPARISON)
     methods = data.get("methods")
     if not isinstance(methods, dict) or not methods:
-        raise ReportError(f"{path / COMPARISON_FILE}: expected a non-empty object 'methods'")
+        raise ReportError(f"{path / COMPARISON}: expected a non-empty object 'methods'")
     runs, entries, skipped = {}, {}, {}
     for method in _method_order(methods):
         entry = methods[method] if isinstance(methods[method], dict) else {}

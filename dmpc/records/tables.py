@@ -6,7 +6,7 @@ from rich.table import Table
 from rich.text import Text
 
 from dmpc.console import stdout_console
-from dmpc.runtime.setup import Prepared
+from dmpc.run_spec import Prepared
 
 
 def design_report(prepared: Prepared) -> Table:
@@ -116,6 +116,8 @@ def print_summary(summary: dict, out) -> None:
     if summary.get("step_time_median_s") is not None and summary.get("runtime") != "in-process":
         table.add_row("step time median / p99",
                       f"{summary['step_time_median_s'] * 1e3:.3f} / {summary['step_time_p99_s'] * 1e3:.3f} ms")
+    if summary.get("startup_s") is not None:
+        table.add_row("start-up", f"{summary['startup_s']:.2f} s (processes started to first release)")
     if summary.get("security"):
         table.add_row("security", "TLS with mutual authentication, access control "
                       + ("on" if summary["security"].get("access_control") else "off"))

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 
 from dmpc.bench import calibration_ms
-from dmpc.bench_report import markdown, targets
+from dmpc.bench_results import markdown, targets
 
 
 def _results() -> dict:
@@ -53,7 +53,7 @@ def test_a_run_that_did_not_complete_is_a_row_with_its_reason_on_one_line():
 
 
 def test_headline_has_the_floor_and_the_ratios():
-    from dmpc.bench_report import headline
+    from dmpc.bench_results import headline
 
     h = headline(_results())
     assert (h["floor_step_ms_p50_m4"], h["floor_step_ms_p99_m4"]) == (2.24, 2.84)

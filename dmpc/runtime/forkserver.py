@@ -1,0 +1,345 @@
+"""Agent processes forked from one process that has imported what an agent needs.
+
+A Python process that imports numpy, scipy.sparse, OSQP and Zenoh spends about 0.35 s of CPU
+before it does anything else; a hundred agents pay that a hundred times, a minute of start-up on
+a machine with two cores. ``dmpc run`` therefore starts one *fork server* before its agents (as
+``multiprocessing``'s forkserver does): a process that imports the agent's modules once and then
+forks each agent process on request. A forked agent is an ordinary process of its own with its
+own Zenoh session (the server never opens one, which is what makes forking safe, see
+docs/runtime.md) and runs the same ``dmpc agent`` command line as one started with exec.
+
+The launcher talks to the server over a Unix socket pair: it sends the command line with the
+write end of the process's output pipe (``SCM_RIGHTS``), the server answers with the new pid,
+and later with its exit code once it has reaped it. :class:`ForkedProcess` offers the part of
+``subprocess.Popen`` that the launcher and the supervisor use.
+
+Processes: launcher -> fork server (PR_SET_PDEATHSIG) -> agents (PR_SET_PDEATHSIG), so no agent
+outlives the launcher, as with exec.
+"""
+from __future__ import annotations
+
+import ctypes
+import gc
+import json
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+PRELOAD = ("dmpc.cli", "dmpc.agents.process", "dmpc.bus.zenoh_bus", "dmpc.run_bundle")
+"""Modules the server imports before forking: everything ``dmpc agent`` needs."""
+READY_TIMEOUT = 60.0
+"""Seconds the launcher waits for the server's imports before starting agents with exec instead."""
+REAP_EVERY = 0.02
+"""Seconds between the server's checks for exited agents (the latency of an exit code)."""
+_MAX_MESSAGE = 1 << 20
+_PR_SET_PDEATHSIG = 1
+_PR_SET_NAME = 15
+
+
+class ForkServerError(RuntimeError):
+    """The fork server could not start or answer."""
+
+
+def _die_with_parent() -> None:
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def _name_process(name: bytes) -> None:
+    """The name ``ps -o comm`` and ``top`` show (the command line stays the server's)."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_NAME, ctypes.c_char_p(name[:15]), 0, 0, 0)
+    except OSError:
+        pass
+
+
+class ForkServer:
+    """The launcher's end: start the server, fork agents through it, learn their exit codes.
+
+    Parameters
+    ----------
+    env : dict
+        The server's environment, which its agents inherit.
+    log : path-like
+        Where the server's own output goes.
+    """
+
+    def __init__(self, env: dict, log) -> None:
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self._sock = mine
+        self.exits: dict[int, int] = {}
+        self._closed = False
+        with open(log, "ab") as out:
+            try:
+                self.proc = subprocess.Popen([sys.executable, "-m", "dmpc.runtime.forkserver", str(theirs.fileno())],
+                                             stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
+                                             pass_fds=[theirs.fileno()], preexec_fn=_die_with_parent, close_fds=True)
+            finally:
+                theirs.close()
+        try:
+            reply = self._receive(READY_TIMEOUT, lambda m: "ready" in m)
+        except ForkServerError:
+            self.close()
+            raise
+        if not reply.get("ready"):
+            self.close()
+            raise ForkServerError(f"the fork server could not import the agent's modules: {reply.get('error')}")
+
+    def _receive(self, timeout: float | None, wanted) -> dict:
+        """Read messages (noting exit codes) until one satisfies ``wanted``; None timeout: none pending."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            left = 0.0 if deadline is None else max(0.0, deadline - time.monotonic())
+            self._sock.settimeout(left if deadline is not None else 0.0)
+            try:
+                data = self._sock.recv(_MAX_MESSAGE)
+            except (BlockingIOError, socket.timeout):
+                if deadline is None:
+                    return {}
+                raise ForkServerError(f"the fork server did not answer within {timeout:g} s") from None
+            except OSError as exc:
+                raise ForkServerError(f"the fork server is gone ({exc})") from None
+            if not data:
+                raise ForkServerError("the fork server is gone")
+            message = json.loads(data)
+            if "exit" in message:
+                self.exits[int(message["exit"])] = int(message["code"])
+            if wanted(message):
+                return message
+
+    def spawn(self, args: list[str], output: int) -> ForkedProcess:
+        """Fork ``dmpc ARGS`` with stdout and stderr on file descriptor ``output``."""
+        forked = self.spawn_all([(args, output)])[0]
+        if forked is None:
+            raise ForkServerError("the fork server could not fork")
+        return forked
+
+    def spawn_all(self, requests: list[tuple[list[str], int]]) -> list[ForkedProcess | None]:
+        """Fork ``dmpc ARGS`` for each (ARGS, output descriptor), all requests sent before any
+        answer is read (the server forks them as one burst); None where a fork failed.
+
+        Raises ForkServerError if the server is gone before any was forked.
+        """
+        try:
+            for args, output in requests:
+                socket.send_fds(self._sock, [json.dumps({"argv": list(args)}).encode()], [output])
+        except OSError as exc:
+            raise ForkServerError(f"the fork server is gone ({exc})") from None
+        forked: list[ForkedProcess | None] = []
+        for _ in requests:
+            try:
+                reply = self._receive(READY_TIMEOUT, lambda m: "pid" in m or "error" in m)
+            except ForkServerError:
+                if not forked:
+                    raise
+                reply = {"error": "gone"}
+            forked.append(ForkedProcess(self, int(reply["pid"])) if "pid" in reply else None)
+        return forked
+
+    def collect(self) -> None:
+        """Note the exit codes the server has sent (never blocks)."""
+        if self._closed:
+            return
+        try:
+            self._receive(None, lambda m: False)
+        except ForkServerError:
+            self._closed = True
+
+    @property
+    def alive(self) -> bool:
+        return not self._closed and self.proc.poll() is None
+
+    def close(self) -> None:
+        """End the server (its agents must have been stopped); idempotent."""
+        self._closed = True
+        try:
+            self._sock.close()
+        except OSError:
+            pass
+        try:
+            self.proc.wait(timeout=2)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+class ForkedProcess:
+    """An agent forked by the server: the part of ``subprocess.Popen`` the launcher uses."""
+
+    def __init__(self, server: ForkServer, pid: int) -> None:
+        self.server = server
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            self.server.collect()
+            if self.pid in self.server.exits:
+                self.returncode = self.server.exits.pop(self.pid)
+            elif not self.server.alive and not _exists(self.pid):
+                self.returncode = 1  # the server died first: the exit code is lost
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
+            time.sleep(REAP_EVERY / 2)
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+
+def _exists(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+# ---------------------------------------------------------------------------- the server
+def serve(fd: int) -> None:
+    """The server's loop: fork on request, reap and report, end when the launcher goes."""
+    sock = socket.socket(fileno=fd)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C at the terminal is for the launcher and the agents
+    try:
+        import importlib
+
+        for name in PRELOAD:
+            importlib.import_module(name)
+        importlib.import_module("dmpc.cli").click_command()
+        gc.collect()
+        gc.freeze()  # the agents' collections skip what is shared (and leave its pages shared)
+    except Exception as exc:  # noqa: BLE001 - reported to the launcher, which falls back to exec
+        sock.send(json.dumps({"ready": False, "error": f"{type(exc).__name__}: {exc}"}).encode())
+        return
+    sock.send(json.dumps({"ready": True}).encode())
+    children: set[int] = set()
+    selector = selectors.DefaultSelector()
+    selector.register(sock, selectors.EVENT_READ)
+    open_ = True
+    while open_:
+        ready = selector.select(REAP_EVERY)
+        _reap(sock, children)
+        if ready:
+            open_ = _fork_burst(sock, children)
+    while children:  # the launcher is gone: wait for the agents it stopped
+        _reap(sock, children, block=True)
+
+
+def _fork_burst(sock: socket.socket, children: set[int]) -> bool:
+    """Fork every request waiting on the socket; False once the launcher has closed its end.
+
+    The agents of a burst wait behind a gate until all of it is forked: started at once, a
+    hundred agents would take the CPU from this process and each fork would wait for it.
+    """
+    gate, release = os.pipe()
+    open_ = True
+    try:
+        sock.setblocking(False)
+        while True:
+            try:
+                data, fds, _, _ = socket.recv_fds(sock, _MAX_MESSAGE, 1)
+            except BlockingIOError:
+                break
+            except OSError:
+                return False
+            if not data:
+                open_ = False
+                break
+            try:
+                argv = json.loads(data)["argv"]
+                pid = os.fork()
+            except Exception as exc:  # noqa: BLE001
+                for f in fds:
+                    os.close(f)
+                sock.send(json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
+                continue
+            if pid == 0:
+                os.close(release)
+                _child(sock, fds[0], argv, gate)  # never returns
+            children.add(pid)
+            for f in fds:
+                os.close(f)
+            sock.send(json.dumps({"pid": pid}).encode())
+    finally:
+        sock.setblocking(True)
+        os.close(gate)
+        os.close(release)  # the gate opens
+    return open_
+
+
+def _reap(sock: socket.socket, children: set[int], block: bool = False) -> None:
+    while children:
+        try:
+            pid, status = os.waitpid(-1, 0 if block else os.WNOHANG)
+        except ChildProcessError:
+            children.clear()
+            return
+        if pid == 0:
+            return
+        children.discard(pid)
+        try:
+            sock.send(json.dumps({"exit": pid, "code": os.waitstatus_to_exitcode(status)}).encode())
+        except OSError:
+            pass  # the launcher is gone
+        if block:
+            return
+
+
+def _child(sock: socket.socket, output: int, argv: list[str], gate: int) -> None:
+    """In the forked agent: its own output, default signals, tied to the server, then ``dmpc ARGV``
+    once ``gate`` (a pipe's read end) reports the end of the burst."""
+    code = 1
+    try:
+        sock.close()
+        os.read(gate, 1)
+        os.close(gate)
+        os.dup2(output, 1)
+        os.dup2(output, 2)
+        os.close(output)
+        for sig in (signal.SIGTERM, signal.SIGCHLD):
+            signal.signal(sig, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        parent = os.getppid()
+        _die_with_parent()
+        _name_process(b"dmpc-" + " ".join(argv[:1]).encode())
+        if os.getppid() != parent:
+            os._exit(1)  # the server died while forking
+        sys.argv = ["dmpc", *argv]
+        from dmpc.cli import main
+
+        main()
+        code = 0
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except BaseException:  # noqa: BLE001 - the traceback goes to the agent's log
+        import traceback
+
+        traceback.print_exc()
+    finally:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:
+            os._exit(code)
+
+
+if __name__ == "__main__":
+    serve(int(sys.argv[1]))
