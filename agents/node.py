@@ -168,7 +168,7 @@ class AgentNode:
     def _decode(self, key: str, payload: bytes, expected: type):
         sender = keys.last_chunk(key) if expected is PlanMessage else COORDINATOR
         try:
-            msg = decode(payload)
+            msg = _decode_shared(payload)
         except DecodeError as exc:
             if isinstance(exc, VersionMismatch) and sender == COORDINATOR:
                 self.coordinator_version = exc  # its text names both versions
@@ -381,3 +381,23 @@ class AgentNode:
 
 def _unchanged() -> None:
     pass
+
+
+_last_decoded: list = [None, None]  # [payload, message or DecodeError]
+
+
+def _decode_shared(payload: bytes):
+    """``decode(payload)``, once per payload object: the agents of one process are handed the same
+    bytes of a release or a plan (the bus fans them out), and decoded messages are read-only
+    (their arrays are views on the payload), so they share the decoding. Each agent still makes
+    its own checks and counts its own drops."""
+    if _last_decoded[0] is not payload:
+        try:
+            result = decode(payload)
+        except DecodeError as exc:
+            result = exc
+        _last_decoded[:] = payload, result
+    result = _last_decoded[1]
+    if isinstance(result, DecodeError):
+        raise result
+    return result

@@ -15,7 +15,11 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer
-from dmpc.bus.messages import PLANT
+
+
+# Fault links name the process that hosts the coordinator (and the simulated plant) "plant",
+# as its log and process name do; agents are named by their subsystems.
+PLANT_PROCESS = "plant"
 
 
 @dataclass(frozen=True)
@@ -66,7 +70,7 @@ def source_of(key: str) -> str:
     parts = key.split("/")
     if len(parts) >= 4 and parts[2] in ("plan", "ready"):
         return parts[3]
-    return PLANT
+    return PLANT_PROCESS
 
 
 class FaultyBus(Bus):

@@ -19,9 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dmpc.bus.keys import COORDINATOR_ROLE
+
 PROTOCOL_VERSION = 3
-COORDINATOR = "coordinator"
-PLANT = "plant"
+COORDINATOR = COORDINATOR_ROLE
 
 
 @dataclass(frozen=True)

@@ -251,7 +251,10 @@ class ZenohBus(Bus):
                         congestion_control=zenoh.CongestionControl.BLOCK,  # default is DROP
                         reliability=zenoh.Reliability.RELIABLE,
                         priority=zenoh.Priority.REAL_TIME,
-                        express=True,
+                        # A shared bus publishes for many nodes in a row: batched by Zenoh's own
+                        # thread, a put costs about 2 us instead of 30-40 us written on this
+                        # thread, for the same latency (measured on loopback).
+                        express=not self._shared,
                         # a shared bus hands its own nodes their messages itself (publish)
                         allowed_destination=zenoh.Locality.REMOTE if self._shared else zenoh.Locality.ANY,
                     )
@@ -383,7 +386,7 @@ class ZenohBus(Bus):
         """Wait on hot key ``key`` when idle (None: the first hot key): the next message the node needs.
 
         A hint: messages on other keys are still handled, but a hot one may wait until ``run``
-        wakes for another reason (at most ``POLL`` seconds).
+        wakes for another reason (at most ``POLL`` seconds). A shared bus ignores it.
         """
         if not self._shared:
             self._expected = self._hot.get(key) if key is not None else None

@@ -22,6 +22,7 @@ from dmpc.records.files import LOGS, log_file
 from dmpc.records.session import RunRecorder
 from dmpc.result import Result, load_run
 from dmpc.run_spec import PlantFunction
+from dmpc.runtime.hosting import check_per_process, group_agents
 from dmpc.runtime.inprocess import record_run
 from dmpc.runtime.launcher import default_topology, launch
 from dmpc.runtime.plant_setup import function_reference, load_plant_function, with_plant_function
@@ -146,7 +147,7 @@ def simulate(scenario: ScenarioLike, *, method: str | None = None, out: str | Pa
 
 def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | None = None,
         plant: PlantFunction | None = None, progress: bool = False, steps: int | None = None,
-        startup_timeout: float = 60.0, topology: str | None = None) -> Result:
+        startup_timeout: float = 60.0, topology: str | None = None, agents_per_process: int = 1) -> Result:
     """Run the plant and one process per agent over Zenoh on this machine (as ``dmpc run``).
 
     Every process is stopped when the run ends, fails, or is interrupted (Ctrl-C re-raises
@@ -162,7 +163,9 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
     startup_timeout : float
         Seconds the processes wait for each other.
     topology : {"mesh", "star"}, optional
-        How the processes connect; the default depends on the number of agents.
+        How the processes connect; the default depends on the number of agent processes.
+    agents_per_process : int
+        Agents served by each agent process (``dmpc run --agents-per-process``); 1 by default.
 
     Returns
     -------
@@ -175,8 +178,9 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
     PlantModelError
         The plant function failed in the plant process (the message holds its traceback).
     ValueError
-        ``plant`` cannot be imported by another process.
+        ``plant`` cannot be imported by another process, or ``agents_per_process`` is below 1.
     """
+    check_per_process(agents_per_process)
     prepared = _prepared(scenario, method, steps)
     reference = None
     if plant is not None:
@@ -188,7 +192,8 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
     run_id = re.sub(r"[^A-Za-z0-9_.-]", "-", prepared.name)[:55] + "-" + secrets.token_hex(4)
     with _run_folder(out) as (folder, temporary):
         outcome = launch(prepared, folder, run_id, startup_timeout=startup_timeout, show_progress=progress,
-                         topology=topology or default_topology(prepared.system.M), plant_model=reference)
+                         topology=topology or default_topology(len(group_agents(prepared.names, agents_per_process))),
+                         plant_model=reference, agents_per_process=agents_per_process)
         if outcome.code == EXIT_INTERRUPTED:
             raise KeyboardInterrupt
         if outcome.code != EXIT_OK:

@@ -36,8 +36,9 @@ def scale_row(M: int, per_process: int, steps: int, workdir: Path, root: Path = 
         ``M``, ``processes`` (agent processes), ``agents_per_process``, ``topology``, ``design_s``,
         ``startup_s`` (processes started to the first release), ``step_ms_p50`` and ``step_ms_p99``
         (steps 1..K-1: step 0 iterates Jacobi to convergence), ``step0_ms``, ``rss_mb_total`` (peak
-        RSS of every process of the run, summed) and ``rss_mb_per_process`` (largest agent
-        process), ``wall_s`` (the launch to its end), ``closed_loop_cost`` and, with ``central``,
+        RSS of every process of the run, summed; shared pages count in each) and
+        ``rss_mb_per_process`` (largest agent process), ``pss_mb_total`` (shared pages divided
+        among their processes), ``wall_s`` (the launch to its end), ``closed_loop_cost`` and, with ``central``,
         ``central_cost``, ``central_solve_s_p50`` and ``cost_ratio`` (DMPC over centralised).
     """
     t0 = time.perf_counter()
@@ -75,7 +76,7 @@ def scale_row(M: int, per_process: int, steps: int, workdir: Path, root: Path = 
         "completed": summary["steps"] == steps, "feasible": summary["feasible"], "fallbacks": summary["fallbacks"],
         "startup_s": summary.get("startup_s"), "step0_ms": float(data["step_time"][0] * 1e3),
         "step_ms_p50": float(np.median(step)), "step_ms_p99": float(np.percentile(step, 99)),
-        "rss_mb_total": sum(v[0] for v in peak.values()),
+        "rss_mb_total": sum(v[0] for v in peak.values()), "pss_mb_total": sum(v[1] for v in peak.values()),
         "rss_mb_per_process": max(agent_processes) if agent_processes else None,
         "rss_mb_plant": peak.get("plant", (None, None))[0],
         "closed_loop_cost": summary["closed_loop_cost"],
@@ -115,8 +116,9 @@ def markdown_row(r: dict) -> str:
         return "-" if value is None else f"{value:.{digits}f}"
 
     if not r.get("completed"):
+        why = (r.get("reason") or "?").strip().splitlines()[-1].strip()
         return f"| {r['M']} | {r['processes']} | {r['agents_per_process']} | {r['topology']} | {f('design_s')} | " \
-               f"did not complete: {r.get('reason', '?').splitlines()[-1] if r.get('reason') else '?'} |"
+               f"did not complete: {why} |"
     cells = [str(r["M"]), str(r["processes"]), str(r["agents_per_process"]), r["topology"], f("design_s"),
              f("startup_s"), f("step_ms_p50"), f("step_ms_p99"), f("rss_mb_total", 0), f("rss_mb_per_process", 0),
              f("closed_loop_cost"), f("central_cost"), f("cost_ratio", 4), f("central_solve_s_p50", 3)]

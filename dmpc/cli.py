@@ -14,7 +14,7 @@ import typer
 
 from dmpc import console
 from dmpc.bus import keys
-from dmpc.bus.faults import FaultyBus
+from dmpc.bus.faults import PLANT_PROCESS, FaultyBus
 from dmpc.console import error_line, silence_c_stdout, stderr_console, stdout_console
 from dmpc.design import DesignError
 from dmpc.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
@@ -412,7 +412,7 @@ def _host_coordinator(scenario: Path, out: Path, plant_side: str, plant_timeout:
     rid = _run_id(run_id, prepared)
     role = keys.COORDINATOR_ROLE
     bus = _open_bus(mode, connect, listen, multicast, lease, zenoh_config, startup_timeout, tls, role)
-    bus = _with_faults(bus, prepared, "plant")
+    bus = _with_faults(bus, prepared, PLANT_PROCESS)
     settle_after_startup()
     try:
         sources = [path for path in (scenario, design_file) if path is not None]

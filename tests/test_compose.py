@@ -105,9 +105,11 @@ def test_agent_ids_match_the_scenario(dmpc_services):
     scenario = scenarios.pop()
     assert (ROOT / scenario).is_file(), scenario
     names = [s.name for s in build_system(load_scenario(ROOT / scenario)).subsystems]
-    ids = {p["id_"] for name, p in parsed.items() if name != "plant"}
+    agents = {name: p["id_"] for name, p in parsed.items() if name != "plant"}
+    assert all(len(ids) == 1 for ids in agents.values()), "one agent per service"
+    ids = {ids[0] for ids in agents.values()}
     assert sorted(ids) == sorted(names)
-    assert {f"agent-{i}" for i in ids} == set(parsed) - {"plant"}
+    assert {f"agent-{i}" for i in ids} == set(agents)
     assert len({p["run_id"] for p in parsed.values()}) == 1, "one run id for every process"
 
 

@@ -213,16 +213,21 @@ def test_restarted_agents_rejoin_and_fall_back_only_in_their_gaps(tmp_path):
     _no_orphans(out)
 
 
-def test_without_restart_a_crashed_agent_is_lost_and_the_run_goes_on(tmp_path):
-    out = tmp_path / "run"
-    proc = _start_run(out, "--steps", "40")
+def _run_killing(out, role: str, *args: str):
+    """A 40-step ``dmpc run`` whose process ``role`` is SIGKILLed at step 10: (process, summary, stderr)."""
+    proc = _start_run(out, "--steps", "40", *args)
     try:
-        _kill_at(out, [("agent-4", 10)])
-        stdout, stderr = proc.communicate(timeout=120)
+        _kill_at(out, [(role, 10)])
+        _, stderr = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    summary = json.loads((out / "summary.json").read_text())
+    return proc, json.loads((out / "summary.json").read_text()), stderr
+
+
+def test_without_restart_a_crashed_agent_is_lost_and_the_run_goes_on(tmp_path):
+    out = tmp_path / "run"
+    proc, summary, stderr = _run_killing(out, "agent-4")
     assert summary["steps"] == 40, stderr
     assert summary["launcher"]["lost"] == ["agent-4"]
     assert {name for _, name in summary["fallback_steps"]} == {"4"}
@@ -239,14 +244,7 @@ def test_a_killed_host_process_is_the_loss_of_its_agents_and_the_run_goes_on(tmp
     both liveliness tokens go and falls back for both from then on, as for lost agents; the other
     host's agents never fall back."""
     out = tmp_path / "run"
-    proc = _start_run(out, "--steps", "40", "--agents-per-process", "2")
-    try:
-        _kill_at(out, [("host-2", 10)])
-        stdout, stderr = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    summary = json.loads((out / "summary.json").read_text())
+    proc, summary, stderr = _run_killing(out, "host-2", "--agents-per-process", "2")
     assert summary["steps"] == 40, stderr
     assert summary["launcher"]["lost"] == ["host-2"] and summary["launcher"]["crashes"] == {"host-2": [-9]}
     by_agent: dict[str, list[int]] = {}

@@ -306,7 +306,7 @@ def check_secure_records(secure: Path, plain: Path) -> None:
     tls = secure / "tls"
     assert summary["security"] == {"tls": True, "mutual_authentication": True, "access_control": True,
                                    "certificates": str(tls)}
-    launcher_only = {"launcher", "agent_reports_missing"}  # absent when ``plain`` ran in one process
+    launcher_only = {"launcher", "agent_reports_missing", "startup_s"}  # absent when ``plain`` ran in one process
     assert set(summary) - {"security"} - launcher_only == \
         set(json.loads((plain / "summary.json").read_text())) - launcher_only
     assert {p.name for p in tls.iterdir()} >= {"ca.pem", "plant.pem", "plant.key", "agent-4.pem", "acl.json"}

@@ -24,6 +24,7 @@ from dmpc.records.session import RunRecorder
 from dmpc.runtime.inprocess import simulate
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from tests.helpers.cli import call, one_error_line
 from tests.helpers.reference import PAPER
 
 RUN = "roles"
@@ -129,3 +130,20 @@ def test_an_agent_names_a_coordinator_of_another_protocol_version(paper):
     assert code == 1
     assert ("the coordinator speaks protocol version 4; this process speaks protocol version "
             f"{PROTOCOL_VERSION}") in message
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["coordinator", PAPER, "--out", "x", "--plant", "outside"], "--plant: expected internal or external"),
+    (["coordinator", PAPER, "--out", "x", "--plant", "external", "--model", "m:f"], "the plant is outside"),
+    (["plant", PAPER], "--out: a run folder is needed when this process hosts the coordinator"),
+    (["plant", PAPER, "--out", "x", "--sensor", "1"], "--sensor: only with --coordinator external"),
+    (["plant", PAPER, "--coordinator", "external", "--out", "x"], "the plant alone writes no run folder"),
+    (["plant", PAPER, "--coordinator", "external", "--sensor", "9"], "--sensor: no subsystem '9'"),
+    (["plant", PAPER, "--coordinator", "external", "--sensor", "1", "--sensor", "1"], "named twice"),
+    (["run", PAPER, "--plant", "elsewhere"], "--plant: expected internal or external"),
+])
+def test_role_flags_that_do_not_fit_are_refused_with_one_line(monkeypatch, capsys, tmp_path, argv, words):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = call(monkeypatch, capsys, *map(str, argv))
+    assert code == 2 and words in one_error_line(err), err
+    assert not (tmp_path / "x").exists()

@@ -167,7 +167,7 @@ def _rogue(argv: list[str]) -> int:
         role = keys.last_chunk(str(sample.key_expr))
         if sample.kind == zenoh.SampleKind.PUT:
             alive.add(role)
-        elif role == "plant":
+        elif role == keys.COORDINATOR_ROLE:
             gone.set()
 
     entities = [session.declare_subscriber(keys.telemetry_prefix(R), on_telemetry),
@@ -179,7 +179,7 @@ def _rogue(argv: list[str]) -> int:
                 session.declare_subscriber(keys.plan(R, "*"), count("plans"), allowed_origin=zenoh.Locality.REMOTE),
                 session.liveliness().declare_subscriber(keys.alive_prefix(R), on_alive, history=True)]
     deadline = time.monotonic() + 20
-    while "plant" not in alive and time.monotonic() < deadline:
+    while keys.COORDINATOR_ROLE not in alive and time.monotonic() < deadline:
         time.sleep(0.01)
     try:
         entities.append(session.liveliness().declare_token(keys.alive(R, "agent-1")))  # denied by the plant

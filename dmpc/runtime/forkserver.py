@@ -18,19 +18,24 @@ outlives the launcher, as with exec.
 """
 from __future__ import annotations
 
+import array
 import ctypes
 import gc
 import json
 import os
+import select
 import selectors
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 
-PRELOAD = ("dmpc.cli", "dmpc.agents.process", "dmpc.bus.zenoh_bus", "dmpc.run_bundle")
-"""Modules the server imports before forking: everything ``dmpc agent`` needs."""
+PRELOAD = ("dmpc.agents.process", "dmpc.bus.zenoh_bus", "dmpc.run_bundle")
+"""Modules the server imports before forking: everything ``dmpc agent`` needs (with the command
+line, which :mod:`dmpc.forkserver_entry` imports and hands to :func:`serve`)."""
 READY_TIMEOUT = 60.0
 """Seconds the launcher waits for the server's imports before starting agents with exec instead."""
 REAP_EVERY = 0.02
@@ -77,7 +82,7 @@ class ForkServer:
         self._closed = False
         with open(log, "ab") as out:
             try:
-                self.proc = subprocess.Popen([sys.executable, "-m", "dmpc.runtime.forkserver", str(theirs.fileno())],
+                self.proc = subprocess.Popen([sys.executable, "-m", "dmpc.forkserver_entry", str(theirs.fileno())],
                                              stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
                                              pass_fds=[theirs.fileno()], preexec_fn=_die_with_parent, close_fds=True)
             finally:
@@ -95,14 +100,16 @@ class ForkServer:
         """Read messages (noting exit codes) until one satisfies ``wanted``; None timeout: none pending."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            left = 0.0 if deadline is None else max(0.0, deadline - time.monotonic())
-            self._sock.settimeout(left if deadline is not None else 0.0)
-            try:
-                data = self._sock.recv(_MAX_MESSAGE)
-            except (BlockingIOError, socket.timeout):
-                if deadline is None:
-                    return {}
-                raise ForkServerError(f"the fork server did not answer within {timeout:g} s") from None
+            try:  # the socket stays blocking for the requests sent meanwhile (spawn_all)
+                data = self._sock.recv(_MAX_MESSAGE, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                left = 0.0 if deadline is None else deadline - time.monotonic()
+                if left <= 0:
+                    if deadline is None:
+                        return {}
+                    raise ForkServerError(f"the fork server did not answer within {timeout:g} s") from None
+                select.select([self._sock], [], [], left)
+                continue
             except OSError as exc:
                 raise ForkServerError(f"the fork server is gone ({exc})") from None
             if not data:
@@ -126,20 +133,29 @@ class ForkServer:
 
         Raises ForkServerError if the server is gone before any was forked.
         """
-        try:
-            for args, output in requests:
-                socket.send_fds(self._sock, [json.dumps({"argv": list(args)}).encode()], [output])
-        except OSError as exc:
-            raise ForkServerError(f"the fork server is gone ({exc})") from None
-        forked: list[ForkedProcess | None] = []
-        for _ in requests:
+        failed: list[OSError] = []
+
+        def send_all() -> None:  # on its own thread: the answers are read meanwhile, so no buffer fills up
             try:
-                reply = self._receive(READY_TIMEOUT, lambda m: "pid" in m or "error" in m)
-            except ForkServerError:
-                if not forked:
-                    raise
-                reply = {"error": "gone"}
-            forked.append(ForkedProcess(self, int(reply["pid"])) if "pid" in reply else None)
+                for args, output in requests:
+                    socket.send_fds(self._sock, [json.dumps({"argv": list(args)}).encode()], [output])
+            except OSError as exc:
+                failed.append(exc)
+
+        sender = threading.Thread(target=send_all, name="dmpc-fork-requests", daemon=True)
+        sender.start()
+        forked: list[ForkedProcess | None] = []
+        try:
+            for _ in requests:
+                try:
+                    reply = self._receive(READY_TIMEOUT, lambda m: "pid" in m or "error" in m)
+                except ForkServerError:
+                    if not forked:
+                        raise ForkServerError(f"the fork server is gone ({failed[0] if failed else 'no answer'})") from None
+                    reply = {"error": "gone"}
+                forked.append(ForkedProcess(self, int(reply["pid"])) if "pid" in reply else None)
+        finally:
+            sender.join(READY_TIMEOUT)
         return forked
 
     def collect(self) -> None:
@@ -214,8 +230,12 @@ def _exists(pid: int) -> bool:
 
 
 # ---------------------------------------------------------------------------- the server
-def serve(fd: int) -> None:
-    """The server's loop: fork on request, reap and report, end when the launcher goes."""
+def serve(fd: int, main: Callable[[], None], prepare: Callable[[], object] | None = None) -> None:
+    """The server's loop: fork on request, reap and report, end when the launcher goes.
+
+    ``main`` is what a forked process runs (``dmpc``'s command line, reading ``sys.argv``);
+    ``prepare`` is called once before the first fork (building the command line's parser).
+    """
     sock = socket.socket(fileno=fd)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C at the terminal is for the launcher and the agents
     try:
@@ -223,7 +243,8 @@ def serve(fd: int) -> None:
 
         for name in PRELOAD:
             importlib.import_module(name)
-        importlib.import_module("dmpc.cli").click_command()
+        if prepare is not None:
+            prepare()
         gc.collect()
         gc.freeze()  # the agents' collections skip what is shared (and leave its pages shared)
     except Exception as exc:  # noqa: BLE001 - reported to the launcher, which falls back to exec
@@ -238,12 +259,12 @@ def serve(fd: int) -> None:
         ready = selector.select(REAP_EVERY)
         _reap(sock, children)
         if ready:
-            open_ = _fork_burst(sock, children)
+            open_ = _fork_burst(sock, children, main)
     while children:  # the launcher is gone: wait for the agents it stopped
         _reap(sock, children, block=True)
 
 
-def _fork_burst(sock: socket.socket, children: set[int]) -> bool:
+def _fork_burst(sock: socket.socket, children: set[int], main: Callable[[], None]) -> bool:
     """Fork every request waiting on the socket; False once the launcher has closed its end.
 
     The agents of a burst wait behind a gate until all of it is forked: started at once, a
@@ -252,10 +273,9 @@ def _fork_burst(sock: socket.socket, children: set[int]) -> bool:
     gate, release = os.pipe()
     open_ = True
     try:
-        sock.setblocking(False)
         while True:
             try:
-                data, fds, _, _ = socket.recv_fds(sock, _MAX_MESSAGE, 1)
+                data, fds = _recv_waiting(sock)
             except BlockingIOError:
                 break
             except OSError:
@@ -273,16 +293,29 @@ def _fork_burst(sock: socket.socket, children: set[int]) -> bool:
                 continue
             if pid == 0:
                 os.close(release)
-                _child(sock, fds[0], argv, gate)  # never returns
+                _child(sock, fds[0], argv, gate, main)  # never returns
             children.add(pid)
             for f in fds:
                 os.close(f)
             sock.send(json.dumps({"pid": pid}).encode())
     finally:
-        sock.setblocking(True)
         os.close(gate)
         os.close(release)  # the gate opens
     return open_
+
+
+def _recv_waiting(sock: socket.socket) -> tuple[bytes, list[int]]:
+    """A request already on the socket and its descriptor; BlockingIOError if there is none.
+
+    (``socket.recv_fds`` ignores its ``flags``: MSG_DONTWAIT must reach ``recvmsg`` itself, and
+    the socket stays blocking for the answers.)
+    """
+    fds = array.array("i")
+    data, ancillary, _, _ = sock.recvmsg(_MAX_MESSAGE, socket.CMSG_LEN(fds.itemsize), socket.MSG_DONTWAIT)
+    for level, kind, payload in ancillary:
+        if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+            fds.frombytes(payload[:len(payload) - len(payload) % fds.itemsize])
+    return data, list(fds)
 
 
 def _reap(sock: socket.socket, children: set[int], block: bool = False) -> None:
@@ -303,7 +336,7 @@ def _reap(sock: socket.socket, children: set[int], block: bool = False) -> None:
             return
 
 
-def _child(sock: socket.socket, output: int, argv: list[str], gate: int) -> None:
+def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: Callable[[], None]) -> None:
     """In the forked agent: its own output, default signals, tied to the server, then ``dmpc ARGV``
     once ``gate`` (a pipe's read end) reports the end of the burst."""
     code = 1
@@ -323,8 +356,6 @@ def _child(sock: socket.socket, output: int, argv: list[str], gate: int) -> None
         if os.getppid() != parent:
             os._exit(1)  # the server died while forking
         sys.argv = ["dmpc", *argv]
-        from dmpc.cli import main
-
         main()
         code = 0
     except SystemExit as exc:
@@ -339,7 +370,3 @@ def _child(sock: socket.socket, output: int, argv: list[str], gate: int) -> None
             sys.stderr.flush()
         finally:
             os._exit(code)
-
-
-if __name__ == "__main__":
-    serve(int(sys.argv[1]))

@@ -11,8 +11,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from dmpc.bus import keys
+
 HOST_PREFIX = "host-"
-AGENT_PREFIX = "agent-"
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ def group_agents(names: Sequence[str], per_process: int) -> list[Host]:
     check_per_process(per_process)
     names = list(names)
     if per_process == 1:
-        return [Host(f"{AGENT_PREFIX}{name}", (name,)) for name in names]
+        return [Host(keys.agent_role(name), (name,)) for name in names]
     count = -(-len(names) // per_process)
     size, extra = divmod(len(names), count) if count else (0, 0)
     hosts, start = [], 0

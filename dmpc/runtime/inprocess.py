@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from dmpc.agents.controller import AgentController
 from dmpc.agents.node import AgentNode
-from dmpc.bus.faults import FaultyBus
+from dmpc.bus.faults import PLANT_PROCESS, FaultyBus
 from dmpc.bus.interface import Bus
 from dmpc.bus.memory import MemoryBus
 from dmpc.methods import method_spec, terminal_policy
@@ -49,7 +49,7 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
     else:
         view = lambda b, name: FaultyBus(b, name, prepared.faults)  # noqa: E731
     system, design = prepared.system, prepared.design
-    plant_bus = view(bus, "plant")
+    plant_bus = view(bus, PLANT_PROCESS)
     coordinator = Coordinator(system, design, make_plant(prepared), prepared.protocol, run_id,
                               policy=terminal_policy(prepared.method, system, design), clock=plant_bus.now)
     plant = PlantNode(plant_bus, coordinator, prepared.digest, on_step, mode=prepared.mode,

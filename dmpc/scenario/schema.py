@@ -18,6 +18,7 @@ from typing import Annotated, Literal, Optional, Union
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema, model_validator
 
+from dmpc.bus.faults import PLANT_PROCESS
 from dmpc.methods import METHOD_NAMES
 
 __all__ = [
@@ -31,7 +32,7 @@ SYM_RTOL = 1e-9
 """Relative tolerance of the symmetry check (on the largest entry's magnitude)."""
 PD_RTOL = 1e-10
 """A matrix is positive definite when its smallest eigenvalue exceeds this times its largest entry."""
-PLANT = "plant"
+PLANT = PLANT_PROCESS  # reserved: the fault links name the coordinator's process so
 """The reserved name of the plant process in fault links."""
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 
