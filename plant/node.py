@@ -225,6 +225,10 @@ class PlantNode:
         elif not self.finished:
             self._carry_out(self.coordinator.on_state(k, x))
 
+    def present(self) -> bool:
+        """True while an agent, or a plant outside, still holds its liveliness token."""
+        return bool(self.alive) or (self.link is not None and any(self.link.alive.values()))
+
     def startup_failure(self, timeout: float) -> str:
         """Why the run did not start within ``timeout`` s: the agents (and plant) missing, the
         designs and protocol versions that differ."""

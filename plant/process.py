@@ -106,17 +106,17 @@ def finish(bus: Bus, node: PlantNode, summary: dict | None, telemetry: Telemetry
 
 
 def linger(bus: Bus, node: PlantNode, timeout: float = LINGER) -> None:
-    """Keep the session open until the agents, told to stop, have left (at most ``timeout`` s).
+    """Keep the session open until the agents (and a plant outside), told to stop, have left (at most ``timeout`` s).
 
-    Closing at once could withdraw the plant's liveliness token before the Stop message has
+    Closing at once could withdraw the coordinator's liveliness token before the Stop message has
     reached every agent (through a router they travel different paths), and an agent would
-    then report a lost plant instead of a finished run. Stop is repeated every
+    then report a lost coordinator instead of a finished run. Stop is repeated every
     ``STOP_REPEAT`` s meanwhile, in case a copy was lost (injected loss drops it too).
     """
     end = bus.now() + timeout
     try:
-        while node.alive and bus.now() < end:
-            if not bus.run(until=lambda: not node.alive, timeout=min(STOP_REPEAT, end - bus.now())):
+        while node.present() and bus.now() < end:
+            if not bus.run(until=lambda: not node.present(), timeout=min(STOP_REPEAT, end - bus.now())):
                 node.repeat_stop()
     except KeyboardInterrupt:
         pass

@@ -122,7 +122,7 @@ def test_a_late_plant_is_waited_for(procs, tmp_path, paper_simulated):
 
 # ------------------------------------------------------------------------------ plant failures
 def test_no_plant_fails_the_start_naming_the_plant(procs, tmp_path):
-    run = Run(procs, tmp_path, "--startup-timeout", "8")
+    run = Run(procs, tmp_path, "--startup-timeout", "6")
     summary = failed_with(run, "plant")
     assert summary["steps"] == 0
 
@@ -145,7 +145,7 @@ def test_a_plant_that_dies_mid_run_stops_the_run_after_the_plant_timeout(procs, 
     ("nan", ["plant", "x[2]: non-finite values"]),
 ])
 def test_a_wrong_state_is_dropped_and_the_run_stops_naming_it(procs, tmp_path, mode, words):
-    run = Run(procs, tmp_path, "--plant-timeout", "3")
+    run = Run(procs, tmp_path, "--plant-timeout", "1.5")
     plant = run.bad_plant(mode, "--from-step", "5")
     summary = failed_with(run, *words)
     assert 4 <= summary["steps"] <= 5  # x(5) never came
@@ -155,7 +155,7 @@ def test_a_wrong_state_is_dropped_and_the_run_stops_naming_it(procs, tmp_path, m
 
 
 def test_a_sensor_with_a_wrong_state_is_named(procs, tmp_path):
-    run = Run(procs, tmp_path, "--plant-timeout", "3")
+    run = Run(procs, tmp_path, "--plant-timeout", "1.5")
     good = [run.plant("--sensor", name, log=f"sensor-{name}.log") for name in ("1", "3", "4")]
     run.bad_plant("shape", "--sensor", "2", "--from-step", "2")
     summary = failed_with(run, "sensor-2", "subsystems 2", "shape (3,)")
@@ -165,7 +165,7 @@ def test_a_sensor_with_a_wrong_state_is_named(procs, tmp_path):
 
 
 def test_a_plant_of_another_protocol_version_is_named_with_both_versions(procs, tmp_path):
-    run = Run(procs, tmp_path, "--startup-timeout", "8")
+    run = Run(procs, tmp_path, "--startup-timeout", "6")
     run.bad_plant("version")
     summary = failed_with(run, "plant", "protocol version 2; this process speaks protocol version 3")
     assert summary["steps"] == 0
