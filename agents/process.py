@@ -15,17 +15,12 @@ from dmpc.agents.controller import AgentController
 from dmpc.agents.node import AgentNode
 from dmpc.bus import keys
 from dmpc.bus.interface import Bus
+from dmpc.bus.messages import COORDINATOR_GRACE
 from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from dmpc.records.agent_reports import FIRST_RELEASE
 from dmpc.run_spec import Prepared
 
 log = logging.getLogger("dmpc.agent")
-
-# After the coordinator's liveliness goes, wait this long for it to come back before exiting. A link
-# that broke (or this process, hung past the lease and resumed) reconnects within it: at once,
-# or at Zenoh's first connect retry one second later. A crashed coordinator never comes back: its
-# liveliness goes at once (a hung one's after the lease), and the agents exit this long later.
-COORDINATOR_GRACE = 1.5
 
 
 @dataclass(frozen=True)

@@ -82,6 +82,11 @@ def sensor_role(subsystem: str) -> str:
     return f"{SENSOR_PREFIX}{subsystem}"
 
 
+def state_sources(subsystems) -> list[str]:
+    """The roles that may send states: the plant, then each subsystem's sensor (in the given order)."""
+    return [PLANT_ROLE] + [sensor_role(name) for name in subsystems]
+
+
 def subsystem_of(role: str, prefix: str) -> str | None:
     """The subsystem name in ``prefix<name>`` (``AGENT_PREFIX`` or ``SENSOR_PREFIX``), or None."""
     return role[len(prefix):] if role.startswith(prefix) and len(role) > len(prefix) else None

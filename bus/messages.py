@@ -23,6 +23,11 @@ from dmpc.bus.keys import COORDINATOR_ROLE
 
 PROTOCOL_VERSION = 3
 COORDINATOR = COORDINATOR_ROLE
+# After the coordinator's liveliness goes, agents and a plant wait this long for it to come back
+# before exiting. A link that broke (or a process hung past the lease and resumed) reconnects
+# within it: at once, or at Zenoh's first connect retry one second later. A crashed coordinator
+# never comes back: its liveliness goes at once (a hung one's after the lease).
+COORDINATOR_GRACE = 1.5
 
 
 @dataclass(frozen=True)

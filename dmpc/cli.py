@@ -394,6 +394,11 @@ def plant(scenario: ScenarioArg,
                  lease, zenoh_config, tls, faults, set_, model)
 
 
+def _check_mode(mode: str) -> None:
+    if mode not in ("peer", "client", "router"):
+        raise InputError(f"--mode: expected peer, client or router, got {mode!r}")
+
+
 def _host_coordinator(scenario: Path, out: Path, plant_side: str, plant_timeout: float, connect, listen, mode: str,
                       run_id, design_file, startup_timeout: float, steps, multicast: bool, lease, zenoh_config,
                       quiet: bool, tls, faults: tuple, set_, model, command: str = "coordinator") -> None:
@@ -402,8 +407,7 @@ def _host_coordinator(scenario: Path, out: Path, plant_side: str, plant_timeout:
     from dmpc.records.tables import print_summary  # start-up time: tables only where printed
     from dmpc.records.session import RunRecorder  # start-up time: it loads pydantic
 
-    if mode not in ("peer", "client", "router"):
-        raise InputError(f"--mode: expected peer, client or router, got {mode!r}")
+    _check_mode(mode)
     sigterm_as_interrupt()
     set_ = _fault_overrides(set_, *faults)
     prepared = _prepare_for_process(scenario, set_, design_file, steps)
@@ -433,8 +437,7 @@ def _serve_plant(scenario: Path, sensors, connect, listen, mode: str, run_id, de
     """``dmpc plant --coordinator external``: the simulated plant (or some sensors) alone."""
     from dmpc.plant.plant_process import run_plant_role  # start-up time: the plant role only for its command
 
-    if mode not in ("peer", "client", "router"):
-        raise InputError(f"--mode: expected peer, client or router, got {mode!r}")
+    _check_mode(mode)
     sigterm_as_interrupt()
     prepared = _prepare_for_process(scenario, _fault_overrides(set_, *faults), design_file, steps)
     prepared = _with_model(prepared, model)

@@ -135,7 +135,7 @@ class Coordinator:
             policy = terminal_policy("tv-box", system, design)
         self.policy = policy
         self._clock = clock
-        self._x = np.array(system.x0 if plant is None else plant.x, dtype=float)  # with a plant outside
+        self._x = np.array(system.x0, dtype=float)  # the measured state, with a plant outside (until start)
         self._pending: dict | None = None  # the record of a step whose next state is awaited
         self.terminal = policy.initial(self.x)
         self.k = 0

@@ -86,8 +86,7 @@ class PlantNode:
         self.started = False
         self.finished = False
         self.failure = ""
-        sources = [] if coordinator.plant is not None else (
-            [keys.PLANT_ROLE] + [keys.sensor_role(name) for name in self.names])
+        sources = [] if coordinator.plant is not None else keys.state_sources(self.names)
         # how this process names itself: the plant process hosts the coordinator unless the plant is outside
         self.who = "plant" if coordinator.plant is not None else "coordinator"
         self.rejects = Rejections(log, self.who, bus.now, self.names + sources)
@@ -172,6 +171,8 @@ class PlantNode:
                 "give every process the same scenario and --set options")
 
     def _on_alive(self, key: str, alive: bool) -> None:
+        if self.link is not None:
+            self.link.on_alive(keys.last_chunk(key), alive)
         name = keys.subsystem_of(keys.last_chunk(key), keys.AGENT_PREFIX)
         if name not in self.names:
             return

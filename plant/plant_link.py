@@ -62,7 +62,6 @@ class PlantLink:
         self._stopped = False
         self._sources = frozenset(self.sources)
         bus.subscribe(keys.state_prefix(run_id), self._on_state)  # not hot: the plans are (one hot wait)
-        bus.watch_alive(keys.alive_prefix(run_id), self._on_alive)
 
     @property
     def sources(self) -> list[str]:
@@ -127,8 +126,8 @@ class PlantLink:
             self._cancel()
             self.on_state(k, x)
 
-    def _on_alive(self, key: str, alive: bool) -> None:
-        role = keys.last_chunk(key)
+    def on_alive(self, role: str, alive: bool) -> None:
+        """The liveliness token of ``role`` appeared or went (the host watches every token)."""
         if role in self._sources:
             self.alive[role] = alive
 

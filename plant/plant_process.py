@@ -4,12 +4,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dmpc.bus.interface import Bus
+from dmpc.bus.messages import COORDINATOR_GRACE
 from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from dmpc.plant.models import make_plant
 from dmpc.plant.plant_role import PlantRole
-
-# After the coordinator's liveliness goes, wait this long for it to come back (as an agent does).
-COORDINATOR_GRACE = 1.5
 
 
 @dataclass(frozen=True)

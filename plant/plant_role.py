@@ -63,7 +63,6 @@ class PlantRole:
         self.coordinator_lost = False
         self.rejects = Rejections(log, "plant", bus.now, [COORDINATOR])
         self._timer: Timer | None = None
-        self._u_slices = {name: system.us(i) for i, name in enumerate(self.names)}
         self._m = {name: system.subsystems[i].m for i, name in enumerate(self.names)}
         bus.subscribe(keys.inputs(run_id), self._on_inputs, hot=True)
         bus.subscribe(keys.control(run_id), self._on_control)

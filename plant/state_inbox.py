@@ -85,4 +85,4 @@ class StateInbox:
 
     def owners(self, names: list[str]) -> list[str]:
         """The sources that could report the subsystems ``names``: the plant and their sensors."""
-        return [keys.PLANT_ROLE] + [keys.sensor_role(name) for name in names]
+        return keys.state_sources(names)

@@ -163,16 +163,11 @@ def child_commands(prepared: Prepared, out: Path, scenario_path: Path, design_pa
     logs.mkdir(exist_ok=True)
     star = topology == "star"
     if plant_timeout is None:
-        head = Child(keys.PLANT_ROLE, base + ["plant", str(scenario_path), "--out", str(out), "--listen", endpoint,
-                                              "--quiet"]
-                     + (["--mode", "router"] if star else []) + (["--model", plant_model] if plant_model else [])
-                     + common, logs / log_file(keys.PLANT_ROLE))
+        role, command = keys.PLANT_ROLE, ["plant"] + (["--model", plant_model] if plant_model else [])
     else:
-        head = Child(keys.COORDINATOR_ROLE, base + ["coordinator", str(scenario_path), "--plant", "external",
-                                                     "--plant-timeout", str(plant_timeout), "--out", str(out),
-                                                     "--listen", endpoint, "--quiet"]
-                     + (["--mode", "router"] if star else []) + common, logs / log_file(keys.COORDINATOR_ROLE))
-    children = [head]
+        role, command = keys.COORDINATOR_ROLE, ["coordinator", "--plant", "external", "--plant-timeout", str(plant_timeout)]
+    children = [Child(role, base + command + [str(scenario_path), "--out", str(out), "--listen", endpoint, "--quiet"]
+                      + (["--mode", "router"] if star else []) + common, logs / log_file(role))]
     agent_net = ["--mode", "client"] if star else ["--listen", f"{proto}/127.0.0.1:0"]
     agent_common = [arg for arg in common if arg not in ("--design", str(design_path))]
     for host in group_agents(prepared.names, agents_per_process):

@@ -88,7 +88,7 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
          [keys.plan(R, "*"), keys.ready(R, "*"), states], [alive_all],
          [keys.plan(R, "*"), keys.ready(R, "*"), states])
     # the plant, or one sensor per subsystem, may publish its own state and nothing else
-    for source in [keys.PLANT_ROLE] + [keys.sensor_role(name) for name in names]:
+    for source in keys.state_sources(names):
         subs = [keys.inputs(R), keys.control(R)]
         role(source, [keys.state(R, source)], subs, [keys.alive(R, source)], subs)
     for name in names:
