@@ -33,6 +33,9 @@ import threading
 import time
 from collections.abc import Callable
 
+from dmpc.exit_codes import EXIT_INTERRUPTED
+from dmpc.runtime.signals import sigterm_as_interrupt
+
 PRELOAD = ("dmpc.agents.process", "dmpc.bus.zenoh_bus", "dmpc.run_bundle")
 """Modules the server imports before forking: everything ``dmpc agent`` needs (with the command
 line, which :mod:`dmpc.forkserver_entry` imports and hands to :func:`serve`)."""
@@ -347,9 +350,10 @@ def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: C
         os.dup2(output, 1)
         os.dup2(output, 2)
         os.close(output)
-        for sig in (signal.SIGTERM, signal.SIGCHLD):
-            signal.signal(sig, signal.SIG_DFL)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        # from the first instant, as the command will: a SIGTERM before it installs its own
+        # handler must still end it through KeyboardInterrupt (exit 130), not kill it outright
+        sigterm_as_interrupt()
         parent = os.getppid()
         _die_with_parent()
         _name_process(b"dmpc-" + " ".join(argv[:1]).encode())
@@ -360,6 +364,8 @@ def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: C
         code = 0
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except KeyboardInterrupt:  # SIGTERM or Ctrl-C before the command could handle it
+        code = EXIT_INTERRUPTED
     except BaseException:  # noqa: BLE001 - the traceback goes to the agent's log
         import traceback
 
