@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -59,9 +60,26 @@ class RoundOpened:
     iteration: int
 
 
-@dataclass(frozen=True)
 class StepCompleted:
-    record: StepRecord
+    """A step is complete; its record is built when first read.
+
+    The next step's release is decided without what only the record needs (the round's plan
+    change when no decision rests on it, the spread, the cost sum): the host sends the release
+    first and reads ``record`` afterwards, off the step's path. Everything the record is made
+    of is fixed when the step completes, so when it is read does not change it.
+    """
+
+    __slots__ = ("_build", "_record")
+
+    def __init__(self, build: Callable[[], StepRecord]) -> None:
+        self._build = build
+        self._record: StepRecord | None = None
+
+    @property
+    def record(self) -> StepRecord:
+        if self._record is None:
+            self._record, self._build = self._build(), None
+        return self._record
 
 
 @dataclass(frozen=True)
@@ -94,6 +112,37 @@ class _AgentStep:
     latency: float
     z: np.ndarray
     v: np.ndarray
+
+
+@dataclass(frozen=True)
+class _PendingStep:
+    """What a completed step's record is made of, fixed when the step closes: the state x(k) (n,),
+    inputs u (m,), terminal sets before and after, rounds, each agent's part, note, and the last
+    round's plan change (measured when the record is built)."""
+
+    k: int
+    x: np.ndarray
+    u: np.ndarray
+    alpha: np.ndarray
+    beta: float
+    rounds: int
+    agents: list[_AgentStep]
+    note: str
+    r: np.ndarray | None
+    terminal: object
+    max_change: Callable[[], float]
+
+    def record(self, x_next: np.ndarray, step_time: float, system: CoupledSystem) -> StepRecord:
+        agents, nxt = self.agents, self.terminal
+        J_agents = [a.J for a in agents]
+        return StepRecord(
+            k=self.k, x=self.x, u=self.u, alpha=self.alpha, beta=self.beta, alpha_next=nxt.alpha, beta_next=nxt.beta,
+            J=float(np.sum(J_agents)), J_agents=J_agents, S=system.spread(self.x), rounds=self.rounds,
+            max_change=self.max_change(), status=[a.status for a in agents], fallback=[a.fallback for a in agents],
+            fallback_reason=[a.reason for a in agents], solve_time=[a.solve_time for a in agents],
+            qp_iterations=[a.qp_iterations for a in agents], plans_z=[a.z for a in agents],
+            plans_v=[a.v for a in agents], latency=[a.latency for a in agents], note=self.note, r=self.r,
+            r_next=nxt.r, x_next=x_next, step_time=step_time)
 
 
 class Coordinator:
@@ -136,7 +185,7 @@ class Coordinator:
         self.policy = policy
         self._clock = clock
         self._x = np.array(system.x0, dtype=float)  # the measured state, with a plant outside (until start)
-        self._pending: dict | None = None  # the record of a step whose next state is awaited
+        self._pending: _PendingStep | None = None  # a step whose next state is awaited
         self.terminal = policy.initial(self.x)
         self.k = 0
         self.iteration = 0
@@ -150,7 +199,6 @@ class Coordinator:
         self._round_status: dict[int, PlanMessage] = {}
         self._received_at: dict[int, float] = {}  # per agent: when its plan in _round_status was accepted
         self._opened_at = math.nan
-        self._max_change = float("nan")
         self.duplicates = 0
         self.inputs_refused: dict[str, int] = {}
         self._refused: dict[int, PlanMessage] = {}  # per agent: its last plan refused (kept until replaced)
@@ -360,13 +408,14 @@ class Coordinator:
             self._seed_from_centralized(infeasible)
         rounds_allowed = self.options.initial_iterations if self.k == 0 else self.options.iterations
         tol = self.options.initial_tolerance if self.k == 0 else self.options.tolerance
-        change = self._round_change()
-        self._max_change = change
-        converged = self.iteration > 0 and change < tol
-        if self.iteration + 1 < rounds_allowed and not converged and not self._missed:
+        another = self.iteration + 1 < rounds_allowed and not self._missed
+        change = self._round_change() if another and self.iteration > 0 else None  # round 0 never converges
+        if another and not (change is not None and change < tol):
             self.iteration += 1
             return self._release_round()
-        return self._finalise_step()
+        if change is None:  # only the record needs it: measured after the next release is out
+            return self._finalise_step(self._change_later())
+        return self._finalise_step(lambda: change)
 
     def _seed_from_centralized(self, infeasible: list[str]) -> None:
         """Replace the first round's plans by the centralised QP's plan
@@ -395,22 +444,36 @@ class Coordinator:
         (its QP was infeasible), so the rounds go on. Agents without a plan in this round do not
         count (0 if none has one).
         """
-        x_parts = self.system.split_state(self.x) if self.iteration == 0 else None
-        change = 0.0
-        for i, plan in self._step_latest.items():
-            if self.iteration == 0:
-                z_ref, v_ref = self._candidate(i, self.last_plan[i], x_parts[i])
-                z_ref[0] = x_parts[i]
-            else:
-                prev = self._prev_round.get(i)
-                if prev is None:
-                    return float("inf")
-                z_ref, v_ref = prev.z, prev.v
-            change = max(change, float(np.abs(plan.z - z_ref).max()), float(np.abs(plan.v - v_ref).max()))
+        return self._change_later()()
+
+    def _change_later(self) -> Callable[[], float]:
+        """:meth:`_round_change` of the round closing now, to be measured later: what it reads is
+        taken now (the plans are never changed once received; the last plans and the state are
+        replaced when the step completes)."""
+        k, iteration, latest, prev_round = self.k, self.iteration, self._step_latest, self._prev_round
+        x_parts = self.system.split_state(self.x.copy()) if iteration == 0 else None
+        last = list(self.last_plan) if iteration == 0 else None
+
+        def change() -> float:
+            top = 0.0
+            for i, plan in latest.items():
+                if iteration == 0:
+                    z_ref, v_ref = candidate_plan(last[i], k, x_parts[i], self.N, self._gamma[i], self._K[i])
+                    z_ref[0] = x_parts[i]
+                else:
+                    prev = prev_round.get(i)
+                    if prev is None:
+                        return float("inf")
+                    z_ref, v_ref = prev.z, prev.v
+                top = max(top, float(np.abs(plan.z - z_ref).max()), float(np.abs(plan.v - v_ref).max()))
+            return top
+
         return change
 
     # ------------------------------------------------------------------ step end
-    def _finalise_step(self) -> list:
+    def _finalise_step(self, max_change: Callable[[], float]) -> list:
+        """Close the step: every agent's input and terminal state decide the next terminal sets and
+        (with a simulated plant) x(k+1). ``max_change`` gives the last round's plan change."""
         system = self.system
         x = self.x.copy()
         x_parts = system.split_state(x)
@@ -418,27 +481,18 @@ class Coordinator:
         u = np.concatenate([a.u for a in agents])
         eta = np.concatenate([a.eta for a in agents])
         nxt = self.policy.update(self.terminal, eta)
-        note = "; ".join(t for t in (self._note, nxt.note) if t)
-        S = system.spread(x)
-        J_agents = [a.J for a in agents]
-        pending = dict(
-            k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta,
-            alpha_next=nxt.alpha, beta_next=nxt.beta, J=float(np.sum(J_agents)), J_agents=J_agents, S=S,
-            rounds=self.iteration + 1, max_change=self._max_change, status=[a.status for a in agents],
-            fallback=[a.fallback for a in agents], fallback_reason=[a.reason for a in agents],
-            solve_time=[a.solve_time for a in agents], qp_iterations=[a.qp_iterations for a in agents],
-            plans_z=[a.z for a in agents], plans_v=[a.v for a in agents], latency=[a.latency for a in agents],
-            note=note, r=self.terminal.r, r_next=nxt.r, terminal=nxt)
+        pending = _PendingStep(k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta, rounds=self.iteration + 1,
+                               agents=agents, note="; ".join(t for t in (self._note, nxt.note) if t), r=self.terminal.r,
+                               terminal=nxt, max_change=max_change)
         if self.plant is None:
             self._pending = pending
             return [ApplyInputs(self.k, u)]
         return self._complete_step(pending, self.plant.step(u))
 
-    def _complete_step(self, pending: dict, x_next: np.ndarray) -> list:
+    def _complete_step(self, pending: _PendingStep, x_next: np.ndarray) -> list:
         """The step's record with x(k+1) (shape (n,)), then the next step's release (or the end)."""
-        nxt = pending.pop("terminal")
-        record = StepRecord(x_next=x_next.copy(), step_time=self._now() - self._opened_at, **pending)
-        actions: list = [StepCompleted(record)]
+        nxt = pending.terminal
+        actions: list = [StepCompleted(partial(pending.record, x_next.copy(), self._now() - self._opened_at, self.system))]
         self.terminal = nxt
         self.k += 1
         self.iteration = 0

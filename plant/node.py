@@ -253,12 +253,13 @@ class PlantNode:
         return f"{'; '.join(said)}; this coordinator speaks protocol version {PROTOCOL_VERSION}"
 
     def _carry_out(self, actions: list) -> None:
-        # write the records after the next releases are out
-        completed = [action.record for action in actions if isinstance(action, StepCompleted)]
+        # build and write the records after the next releases are out
+        completed = [action for action in actions if isinstance(action, StepCompleted)]
         try:
             self._dispatch([a for a in actions if not isinstance(a, StepCompleted)])
         finally:
-            for rec in completed:
+            for action in completed:
+                rec = action.record
                 self.on_step(rec)
                 if self.telemetry is not None:
                     self.telemetry.step(rec, self)

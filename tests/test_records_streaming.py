@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import errno
+import math
 import json
 
 import numpy as np
@@ -148,3 +149,24 @@ def test_the_files_a_run_was_loaded_from_are_not_written_again(tmp_path, paper_r
         pass
     assert json.loads((tmp_path / "other" / DESIGN).read_text())["digest"] == prepared.digest
     assert "subsystems" in (tmp_path / "other" / SCENARIO).read_text()
+
+
+def test_the_step_log_line_equals_the_json_of_the_step_line(paper_records):
+    """steps.jsonl is written by a C encoder; it must read back as the strict-JSON step line:
+    NaN and infinities as null, arrays (strided ones too) as lists, numpy scalars as numbers."""
+    from dataclasses import replace
+
+    from dmpc.records.run_folder import step_line, step_text
+
+    _, records = paper_records
+    rec = records[3]
+    odd = replace(rec, x=np.arange(2 * rec.x.size, dtype=float)[::2], beta=np.float64(np.inf), J=math.nan,
+                  latency=[math.nan] + list(rec.latency[1:]), alpha=np.full(rec.alpha.shape, -np.inf),
+                  qp_iterations=[np.int64(q) for q in rec.qp_iterations], note="k=3: agent 1 lost")
+    for r in (rec, odd, records[-1]):
+        text = step_text(r)
+        assert text.endswith("\n") and text.count("\n") == 1
+        assert json.loads(text) == json.loads(json.dumps(step_line(r), allow_nan=False))
+    parsed = json.loads(step_text(odd))
+    assert parsed["beta"] is None and parsed["J"] is None and parsed["latency"][0] is None
+    assert parsed["alpha"] == [None] * rec.alpha.size and parsed["x"] == list(range(0, 2 * rec.x.size, 2))

@@ -211,7 +211,8 @@ def test_folder_feed_reads_a_run_folder_while_it_is_written(tmp_path, recorded):
     for name in ("scenario.yaml", "design.json"):
         shutil.copy(folder / name, live / name)
     raw = (folder / "steps.jsonl").read_bytes()
-    cut = raw.index(b"\n", raw.index(b'"k": 10')) - 40  # in the middle of step 10's line
+    lines_end = [n for n, byte in enumerate(raw) if byte == ord("\n")]
+    cut = lines_end[10] - 40  # in the middle of step 10's line (the 11th)
     (live / "steps.jsonl").write_bytes(raw[:cut])
     state = RunState(f"run folder {live}")
     feed = FolderFeed(live, state)

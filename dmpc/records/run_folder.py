@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import orjson
 
 from dmpc.records.columns import StepColumns, StepTally, write_npz
 from dmpc.records.files import ROWS, STEP_LOG, SUMMARY, TRAJECTORY
@@ -138,7 +139,7 @@ class RunFolder:
 
     def append_step(self, rec: StepRecord) -> None:
         """Append one step to the log (flushed) and to the rows of the arrays."""
-        text = json.dumps(step_line(rec)) + "\n"
+        text = step_text(rec)
         log_end = self._log.tell()
         try:
             self._log.write(text)
@@ -197,8 +198,24 @@ class RunFolder:
         return summary
 
 
+def step_text(rec: StepRecord) -> str:
+    """A step record as its ``steps.jsonl`` line (docs/records.md), with its newline.
+
+    Written for every step on the coordinator's step path, so serialised in one call of a C
+    encoder: arrays as nested lists, NaN and infinities as ``null``, as :func:`step_line` gives them.
+    """
+    return orjson.dumps(_line_fields(rec), default=jsonable, option=_STEP_OPTIONS).decode()
+
+
+_STEP_OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_APPEND_NEWLINE
+
+
 def step_line(rec: StepRecord) -> dict:
     """A step record as its ``steps.jsonl`` line (docs/records.md), JSON-ready."""
+    return jsonable(_line_fields(rec))
+
+
+def _line_fields(rec: StepRecord) -> dict:
     line = {
         "k": rec.k, "x": rec.x, "u": rec.u, "alpha": rec.alpha, "beta": rec.beta, "J": rec.J,
         "J_agents": rec.J_agents, "S": rec.S, "rounds": rec.rounds, "max_change": rec.max_change,
@@ -209,7 +226,7 @@ def step_line(rec: StepRecord) -> dict:
     }
     if rec.r is not None:
         line["r"], line["r_next"] = rec.r, rec.r_next
-    return jsonable(line)
+    return line
 
 
 def write_error(exc: OSError, path: Path, cls: type[RunFolderError] = RecordWriteError) -> RunFolderError:
