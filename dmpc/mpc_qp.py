@@ -183,10 +183,12 @@ class MpcQP:
         else:
             np.negative(coupling.reshape(-1), out=l[n:nz])
         u[:nz] = l[:nz]
-        np.clip(terminal_lower, -OSQP_INFTY, OSQP_INFTY, out=l[self._terminal])
-        np.clip(terminal_upper, -OSQP_INFTY, OSQP_INFTY, out=u[self._terminal])
+        # clipped to +-OSQP_INFTY (np.clip's values, without its dispatch: this runs every step)
+        lower_f, upper_f = l[self._terminal], u[self._terminal]
+        np.minimum(np.maximum(terminal_lower, -OSQP_INFTY, out=lower_f), OSQP_INFTY, out=lower_f)
+        np.minimum(np.maximum(terminal_upper, -OSQP_INFTY, out=upper_f), OSQP_INFTY, out=upper_f)
         N = self.N
-        if np.any(l[self._terminal] > u[self._terminal]):
+        if (lower_f > upper_f).any():
             # an empty terminal set (e.g. beta below the tube margin): OSQP would reject the
             # update and silently keep the previous problem, so answer here
             return QPSolution(QPStatus.INFEASIBLE, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan),

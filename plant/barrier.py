@@ -28,7 +28,7 @@ from dmpc.methods.policy import TerminalPolicy
 from dmpc.mpc_qp import plan_cost
 from dmpc.plant.dynamics import Plant
 from dmpc.qp_status import SOLVED, QPStatus
-from dmpc.security.rejects import MAX_MAGNITUDE, magnitude
+from dmpc.security.rejects import MAX_MAGNITUDE, clearly_in_range, magnitude
 from dmpc.steps import ProtocolOptions, StepRecord
 from dmpc.system import CoupledSystem, LinearSet, project_onto
 from dmpc.trajectories import Plan, candidate_plan, shifted_input
@@ -350,7 +350,7 @@ class Coordinator:
             return "wrong shape"
         if msg.status not in KNOWN_STATUSES:
             return "unknown status"
-        if msg.status in SOLVED:
+        if msg.status in SOLVED and not (clearly_in_range(msg.z, msg.v) and -MAX_MAGNITUDE <= msg.cost <= MAX_MAGNITUDE):
             size = magnitude(msg.z, msg.v, msg.cost)
             if not math.isfinite(size):
                 return "non-finite plan"

@@ -178,3 +178,22 @@ def test_ready_defects_named(mutate, match):
     mutate(body)
     with pytest.raises(DecodeError, match=match):
         decode(msgpack.packb(body, use_bin_type=True))
+
+
+@given(z=arrays(np.float64, (3, 2), elements=st.one_of(finite, st.sampled_from([1e154, -1e200, 1.7e308]))),
+       bad=st.sampled_from([math.nan, math.inf, -math.inf, None]), at=st.integers(0, 5),
+       status=st.sampled_from(["solved", "infeasible"]))
+def test_non_finite_values_are_found_whatever_the_other_values(z, bad, at, status):
+    """The finiteness check's shortcut (a finite sum of squares) must not hide a NaN or an
+    infinity, nor refuse finite values whose squares overflow."""
+    z = z.copy()
+    if bad is not None:
+        z.flat[at] = bad
+    msg = PlanMessage(run="r", k=1, iteration=0, sender="1", status=status, z=z, v=np.zeros((2, 1)), cost=1.0,
+                      solve_time=0.0, qp_iterations=3)
+    refused = bad is not None and (status == "solved" or math.isinf(bad))
+    if refused:
+        with pytest.raises(DecodeError, match="non-finite"):
+            decode(encode(msg))
+    else:
+        assert np.array_equal(decode(encode(msg)).z, z, equal_nan=True)

@@ -26,7 +26,7 @@ from dmpc.bus.session import TlsFiles, session_config
 from dmpc.security.acl import access_control, read_acl, scenario_access_control
 from dmpc.security.certs import make_certificates, make_run_security
 from dmpc.security.files import node_security, role_names, tls_files
-from dmpc.security.rejects import MAX_MAGNITUDE, UNKNOWN, Rejections, magnitude, out_of_range
+from dmpc.security.rejects import MAX_MAGNITUDE, UNKNOWN, Rejections, clearly_in_range, magnitude, out_of_range
 from tests.helpers.cli import call, one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -478,6 +478,22 @@ def test_records_hold_no_pickles(tmp_path, prepared):
 # ---------------------------------------------------------------- magnitude of a received plan
 
 _entries = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+_near_the_limit = st.one_of(_entries, st.sampled_from([MAX_MAGNITUDE, -MAX_MAGNITUDE, np.nextafter(MAX_MAGNITUDE, np.inf),
+                                                       MAX_MAGNITUDE / 2, 7.1e11, 1e154, 1e200, -1e300]))
+
+
+@given(z=arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 3)), elements=_near_the_limit),
+       v=arrays(np.float64, st.integers(0, 5), elements=_near_the_limit))
+def test_out_of_range_of_arrays_alone_agrees_with_the_largest_entry(z, v):
+    """Arrays alone take the sum-of-squares shortcut; it must never change the answer, near the
+    limit and where the squares overflow."""
+    everything = np.concatenate([z.ravel(), v.ravel()])
+    expected = bool(np.isnan(everything).any()) or (everything.size > 0 and np.max(np.abs(everything)) > MAX_MAGNITUDE)
+    assert out_of_range(z, v) == expected
+    if clearly_in_range(z, v):
+        assert not expected and (everything.size == 0 or np.max(np.abs(everything)) < MAX_MAGNITUDE / 2)
 
 
 @given(z=arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 3)), elements=_entries),
