@@ -13,9 +13,10 @@ from dmpc.console import stderr_console
 FULL = {"qp_horizons": [5, 10, 20], "qp_repeat": 20,
         "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
         "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
-        "design_compare": 256}
+        "design_compare": 256, "floor_sets": 5}
 QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
-         "design": [4, 8], "design_compare": 8}
+         "design": [4, 8], "design_compare": 8, "floor_sets": 3}
+"""``floor_sets``: floor and run alternated that many times at M = 4 (once at larger M)."""
 
 
 def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
@@ -36,7 +37,8 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
             step(f"QP N={N}")
         qp10 = next((q for q in results["qp"] if q["N"] == 10), None) or bench.qp_solve_times(10, 1, root)
         for M, steps in plan["runtime"]:
-            results["runtime"].append(bench.run_against_floor(M, steps, qp10["us_p50"], Path(tmp), root))
+            results["runtime"].append(bench.run_against_floor(M, steps, qp10["us_p50"], Path(tmp), root,
+                                                              sets=plan["floor_sets"] if M == 4 else 1))
             step(f"multi-process M={M}")
         for M in plan["baselines"]:
             results["inprocess"].append(bench.run_inprocess(M, plan["baseline_steps"], root))
@@ -162,6 +164,13 @@ def markdown(results: dict, command: str) -> str:
         else:
             reason = " ".join(str(r.get("reason", "?")).split())[:160].replace("|", "/")
             lines.append(f"| {r['M']} | {r.get('topology', '-')} | did not complete: {reason} | | | | | | | | | | | | |")
+    for r in results["runtime"]:
+        if len(r.get("sets", [])) > 1:
+            shown = "; ".join(f"{p['floor_ms_p50']:.2f} / {p['floor_ms_p99']:.2f} then {p['step_ms_p50']:.2f} / "
+                              f"{p['step_ms_p99']:.2f}" for p in r["sets"])
+            lines += ["", f"M = {r['M']}: floor and run alternated {len(r['sets'])} times (step median / p99 in ms, "
+                          f"floor then run): {shown}. The row gives the medians over the sets and the medians of "
+                          "each set's ratios."]
     lines += ["", "## Side by side: the same closed loop, per-step time and closed-loop cost", "",
               "| M | DMPC multi-process (ms) | DMPC in-process (ms) | centralised OSQP (ms) | centralised CVXPY (ms) | "
               "cost DMPC | cost centralised OSQP | cost CVXPY | multi-process / CVXPY | multi-process / OSQP |",

@@ -394,6 +394,8 @@ class Coordinator:
         return self.last_plan[j]
 
     def _maybe_close_round(self) -> list:
+        if self._pending is not None:
+            return []  # the step is decided: its inputs are with the plant outside, its state awaited
         if len(self._round) + len(self._missed) < self.system.M or (
                 self._missed and len(self._round) + len(self._missed - self._round.keys()) < self.system.M):
             return []

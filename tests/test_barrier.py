@@ -13,7 +13,7 @@ import pytest
 
 from dmpc.agents.controller import AgentController
 from dmpc.bus.messages import PlanMessage
-from dmpc.plant.barrier import Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, input_excess
+from dmpc.plant.barrier import ApplyInputs, Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, input_excess
 from dmpc.plant.dynamics import Plant
 from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
@@ -414,3 +414,37 @@ def test_input_excess_on_a_polytope_with_one_sided_rows():
     assert input_excess(lin, np.array([[1.5, 1.0]])) == pytest.approx(0.5 - 2e-6)
     assert input_excess(lin, np.array([[0.0, 2.0]])) == pytest.approx(1.0 - 1e-6)
     assert input_excess(lin, np.zeros((0, 2))) == -np.inf
+
+
+class OutsideDriver(Driver):
+    """A Driver whose coordinator has a plant outside: steps end with ApplyInputs."""
+
+    def __init__(self, prepared, controllers, options: ProtocolOptions) -> None:
+        self.system = prepared.system
+        self.coord = Coordinator(prepared.system, prepared.design, None, options, RUN)
+        self.controllers = controllers
+        self.archive, self.releases, self.records, self.rejected = {}, {}, [], {}
+        self.finished = False
+        self.applied: list[ApplyInputs] = []
+        self.handle(self.coord.start(prepared.system.x0))
+
+    def handle(self, actions) -> list:
+        self.applied += [a for a in actions if isinstance(a, ApplyInputs)]
+        return super().handle([a for a in actions if not isinstance(a, ApplyInputs)])
+
+
+def test_a_round_closed_while_the_plant_outside_measures_is_not_closed_again(prepared, controllers):
+    """Between ApplyInputs and the state, a deadline of the closed round or a lost agent must not
+    decide the step again; the record (built after the state) is the simulated plant's."""
+    options = ProtocolOptions(steps=3, initial_iterations=1)
+    simulated = Driver(prepared, controllers, options)
+    simulated.round()
+    outside = OutsideDriver(prepared, controllers, options)
+    outside.round()
+    assert len(outside.applied) == 1 and outside.applied[0].k == 0
+    assert outside.coord.on_deadline(0, 0) == [] and outside.coord.on_agent_lost("2") == []
+    assert len(outside.applied) == 1
+    outside.handle(outside.coord.on_state(1, Plant(prepared.system).step(outside.applied[0].u)))
+    ours, theirs = outside.records[0], simulated.records[0]
+    assert np.array_equal(ours.u, theirs.u) and np.array_equal(ours.x_next, theirs.x_next)
+    assert ours.max_change == theirs.max_change and ours.J == theirs.J and ours.S == theirs.S

@@ -78,3 +78,30 @@ def test_targets_say_which_are_met_from_the_figures():
     assert rows["DMPC multi-process step faster than the centralised CVXPY step, every M"] == ("1.3x at M = 4", "no")
     # no M >= 32 completed: nothing to compare, so not claimed either way
     assert rows["DMPC multi-process step faster than the centralised OSQP step, M >= 32"] == ("-", "-")
+
+
+def test_alternated_sets_give_medians_and_the_median_of_each_sets_ratio(monkeypatch, tmp_path):
+    """Floor and run alternate; a set whose run failed is left out; the ratios are per set."""
+    from dmpc import bench
+
+    floors = iter([(1.0, 2.0), (0.5, 1.0), (1.0, 1.0), (2.0, 4.0)])
+    runs = iter([(3.0, 4.0), (2.0, 5.0), None, (4.0, 6.0)])
+    monkeypatch.setattr(bench, "run_floor", lambda *a, **k: dict(zip(("step_ms_p50", "step_ms_p99"), next(floors)),
+                                                                  completed=True))
+
+    def run(M, steps, workdir, root, timeout):
+        assert workdir.is_dir()
+        figures = next(runs)
+        if figures is None:
+            return {"M": M, "completed": False, "reason": "lost"}
+        return {"M": M, "completed": True, "step_ms_p50": figures[0], "step_ms_p99": figures[1], "rss_mb_total": 1.0}
+
+    monkeypatch.setattr(bench, "run_multiprocess", run)
+    result = bench.run_against_floor(4, 10, 50.0, tmp_path, sets=4)
+    assert [(p["floor_ms_p50"], p["step_ms_p50"]) for p in result["sets"]] == [(1.0, 3.0), (0.5, 2.0), (2.0, 4.0)]
+    assert result["step_ms_p50"] == 3.0 and result["step_ms_p99"] == 5.0
+    assert result["floor"]["step_ms_p50"] == 1.0 and result["floor"]["step_ms_p99"] == 2.0
+    assert result["over_floor_p50"] == 3.0  # ratios 3, 4, 2
+    assert result["over_floor_p99"] == 2.0  # ratios 2, 5, 1.5
+    text = markdown({**_results(), "runtime": [dict(_results()["runtime"][0], sets=result["sets"])]}, "dmpc bench")
+    assert "alternated 3 times" in text and "1.00 / 2.00 then 3.00 / 4.00" in text
