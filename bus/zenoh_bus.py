@@ -459,6 +459,8 @@ class ZenohBus(Bus):
 
     def _due_timer(self, now: float) -> tuple[_ZenohTimer | None, float | None]:
         """Pop the next due timer, or return the time of the next one."""
+        if not self._timers:  # read without the lock: a timer added meanwhile wakes run() again
+            return None, None
         with self._lock:
             while self._timers and self._timers[0][2].cancelled:
                 heapq.heappop(self._timers)
@@ -500,10 +502,11 @@ class ZenohBus(Bus):
                 return self._queue.get(timeout=max(wake_at - time.monotonic(), 0.0))
             except queue.Empty:
                 return None
-        try:
-            return self._queue.get_nowait()
-        except queue.Empty:
-            pass
+        if not self._queue.empty():
+            try:
+                return self._queue.get_nowait()
+            except queue.Empty:
+                pass
         for entry in self._others:
             sample = entry.subscriber.try_recv()
             if sample is not None:

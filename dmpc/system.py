@@ -292,16 +292,23 @@ class CoupledSystem:
     def x0(self) -> np.ndarray:
         return np.concatenate([s.x0 for s in self.subsystems])
 
+    @cached_property
+    def _state_parts(self) -> tuple[slice, ...]:
+        return tuple(self.xs(i) for i in range(self.M))
+
+    @cached_property
+    def _neighbour_counts(self) -> tuple[int, ...]:
+        return tuple(len(self.neighbours[i]) for i in range(self.M))
+
     def split_state(self, x: np.ndarray) -> list[np.ndarray]:
-        return [x[self.xs(i)] for i in range(self.M)]
+        return [x[part] for part in self._state_parts]
 
     def split_input(self, u: np.ndarray) -> list[np.ndarray]:
         return [u[self.us(i)] for i in range(self.M)]
 
     def spread(self, x: np.ndarray) -> float:
         """S(x) = sum_i ||x_i||^2 / |N_i| (|N_i| counts i itself) for the global state x (n,)."""
-        parts = self.split_state(x)
-        return float(sum(parts[i] @ parts[i] / len(self.neighbours[i]) for i in range(self.M)))
+        return float(sum(x[part] @ x[part] / count for part, count in zip(self._state_parts, self._neighbour_counts)))
 
 
 
