@@ -350,7 +350,7 @@ class Coordinator:
             return "wrong shape"
         if msg.status not in KNOWN_STATUSES:
             return "unknown status"
-        if msg.status in SOLVED and not (clearly_in_range(msg.z, msg.v) and -MAX_MAGNITUDE <= msg.cost <= MAX_MAGNITUDE):
+        if msg.status in SOLVED and not clearly_in_range(msg.z, msg.v, msg.cost):
             size = magnitude(msg.z, msg.v, msg.cost)
             if not math.isfinite(size):
                 return "non-finite plan"

@@ -485,15 +485,16 @@ _near_the_limit = st.one_of(_entries, st.sampled_from([MAX_MAGNITUDE, -MAX_MAGNI
 
 
 @given(z=arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 3)), elements=_near_the_limit),
-       v=arrays(np.float64, st.integers(0, 5), elements=_near_the_limit))
-def test_out_of_range_of_arrays_alone_agrees_with_the_largest_entry(z, v):
-    """Arrays alone take the sum-of-squares shortcut; it must never change the answer, near the
-    limit and where the squares overflow."""
-    everything = np.concatenate([z.ravel(), v.ravel()])
-    expected = bool(np.isnan(everything).any()) or (everything.size > 0 and np.max(np.abs(everything)) > MAX_MAGNITUDE)
-    assert out_of_range(z, v) == expected
-    if clearly_in_range(z, v):
-        assert not expected and (everything.size == 0 or np.max(np.abs(everything)) < MAX_MAGNITUDE / 2)
+       v=arrays(np.float64, st.integers(0, 5), elements=_near_the_limit), cost=_near_the_limit)
+def test_the_sum_of_squares_shortcut_agrees_with_the_largest_entry(z, v, cost):
+    """The sum-of-squares shortcut must never change the answer, near the limit and where the
+    squares overflow, for arrays alone or with a scalar."""
+    for values in ((z, v), (z, v, cost)):
+        everything = np.concatenate([np.ravel(a) for a in values])
+        expected = bool(np.isnan(everything).any()) or (everything.size > 0 and np.max(np.abs(everything)) > MAX_MAGNITUDE)
+        assert out_of_range(*values) == expected
+        if clearly_in_range(*values):
+            assert not expected and (everything.size == 0 or np.max(np.abs(everything)) < MAX_MAGNITUDE / 2)
 
 
 @given(z=arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 3)), elements=_entries),

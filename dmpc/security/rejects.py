@@ -123,19 +123,23 @@ def magnitude(*values) -> float:
 _CLEARLY_IN_RANGE = (MAX_MAGNITUDE / 2) ** 2
 
 
-def clearly_in_range(*arrays: np.ndarray) -> bool:
-    """True when the sum of squares of every entry is finite and below (MAX_MAGNITUDE / 2)^2:
-    then every entry is finite and well within ``MAX_MAGNITUDE``. False says nothing (ask
-    :func:`magnitude`); one cheap call per array for the common case of a plan in range."""
+def clearly_in_range(*values) -> bool:
+    """True when the sum of squares of every entry of the arrays (and scalars) is finite and below
+    (MAX_MAGNITUDE / 2)^2: then every entry is finite and well within ``MAX_MAGNITUDE``. False
+    says nothing (ask :func:`magnitude`); one cheap call per array for the common case of a plan
+    in range."""
     total = 0.0
-    for a in arrays:
-        flat = a.ravel()
-        total += float(flat.dot(flat))
+    for a in values:
+        if isinstance(a, np.ndarray):
+            flat = a.ravel()
+            total += float(flat.dot(flat))
+        else:
+            total += float(a) * float(a)
     return total < _CLEARLY_IN_RANGE  # False for NaN
 
 
 def out_of_range(*values) -> bool:
     """True if an entry of the arrays (or scalars) exceeds ``MAX_MAGNITUDE`` in size, or is NaN."""
-    if all(isinstance(v, np.ndarray) for v in values) and clearly_in_range(*values):
+    if clearly_in_range(*values):
         return False
     return not magnitude(*values) <= MAX_MAGNITUDE
