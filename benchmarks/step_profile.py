@@ -4,7 +4,7 @@ Runs the paper's example in lockstep with ``dmpc run`` and the bus floor (``dmpc
 the same five processes, payloads and neighbours, nothing decoded or checked, the QP replaced by
 ``--compute-us`` of CPU), alternating, and while each is stepping reads every thread's CPU time
 from ``/proc/<pid>/task`` over a window of ``--window`` seconds. Prints, per process, the main
-thread's and Zenoh's threads' CPU per step, the total, and the step median of the window, with
+thread's and its other threads' (Zenoh's) CPU per step, the total, and the step median of the window, with
 the machine's speed figure (ms for 10^6 Python additions).
 
 On two cores the five processes are CPU-bound, so the step follows the total: this is the table
@@ -23,7 +23,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -33,53 +32,50 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dmpc.bench import calibration_ms, floor_spec  # noqa: E402
-from dmpc.bus.session import free_tcp_port  # noqa: E402
+from dmpc.bench_floor import measure  # noqa: E402
 
-MAIN_THREADS = {"python", "python3", "dmpc-agent", "dmpc-plant"}
-"""Thread names of a process's main thread (Python's, or as dmpc's processes name themselves)."""
 SETTLE = 2.5  # seconds after launch before the window opens: start-up and step 0 are over
 
 
 def thread_cpu(pids: list[int]) -> dict[tuple[int, str], float]:
-    """CPU seconds so far per (process, main or zenoh), from /proc/<pid>/task/*/stat."""
+    """CPU seconds so far per (process, "main" or "other"), from /proc/<pid>/task/*/stat; the
+    other threads are Zenoh's (and the bus's alarm thread, which mostly sleeps)."""
     tick = os.sysconf("SC_CLK_TCK")
     out: dict[tuple[int, str], float] = {}
     for pid in pids:
         for tid in os.listdir(f"/proc/{pid}/task"):
             try:
-                name = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
                 fields = Path(f"/proc/{pid}/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()
             except OSError:
                 continue  # the thread ended
-            kind = "main" if name in MAIN_THREADS or tid == str(pid) else "zenoh"
+            kind = "main" if tid == str(pid) else "other"
             out[(pid, kind)] = out.get((pid, kind), 0.0) + (int(fields[11]) + int(fields[12])) / tick
     return out
 
 
-def per_step(before: dict, after: dict, steps: float, names: dict[int, str]) -> list[dict]:
-    """Each process's main-thread and Zenoh-thread CPU per step (us) between two readings."""
-    rows = []
-    for pid, name in names.items():
-        row = {"process": name}
-        for kind in ("main", "zenoh"):
-            spent = after.get((pid, kind), 0.0) - before.get((pid, kind), 0.0)
-            row[f"{kind}_us"] = spent / steps * 1e6
-        rows.append(row)
-    return rows
-
-
-def window(proc: subprocess.Popen, pids: list[int], names: dict[int, str], seconds: float, step_ms) -> dict:
-    """CPU per step over ``seconds``; ``step_ms()`` gives the step median and mean of the window."""
+def cpu_window(procs: list[subprocess.Popen], names: dict[int, str], seconds: float, what: str) -> dict:
+    """Read the processes' CPU time now and ``seconds`` later."""
+    pids = list(names)
     before, t0 = thread_cpu(pids), time.monotonic()
     time.sleep(seconds)
     after, elapsed = thread_cpu(pids), time.monotonic() - t0
-    if proc.poll() is not None:
-        raise SystemExit("the run ended inside the window: give it more --steps")
-    median = step_ms()
-    steps = elapsed * 1e3 / median["mean_ms"]
-    rows = per_step(before, after, steps, names)
-    return {"step_ms_p50": median["p50_ms"], "steps_in_window": steps, "processes": rows,
-            "total_us": sum(r["main_us"] + r["zenoh_us"] for r in rows)}
+    if any(p.poll() is not None for p in procs):
+        raise SystemExit(f"the {what} ended inside the window: give it more --steps")
+    return {"before": before, "after": after, "elapsed": elapsed}
+
+
+def per_step(reading: dict, step_ms_mean: float, step_ms_p50: float, names: dict[int, str]) -> dict:
+    """Each process's main-thread and other threads' CPU per step (us) over the window."""
+    steps = reading["elapsed"] * 1e3 / step_ms_mean
+    rows = []
+    for pid, name in names.items():
+        row = {"process": name}
+        for kind in ("main", "other"):
+            spent = reading["after"].get((pid, kind), 0.0) - reading["before"].get((pid, kind), 0.0)
+            row[f"{kind}_us"] = spent / steps * 1e6
+        rows.append(row)
+    return {"step_ms_p50": step_ms_p50, "steps_in_window": steps, "processes": rows,
+            "total_us": sum(r["main_us"] + r["other_us"] for r in rows)}
 
 
 def profile_run(steps: int, seconds: float) -> dict:
@@ -89,58 +85,41 @@ def profile_run(steps: int, seconds: float) -> dict:
                             stderr=subprocess.DEVNULL)
     try:
         time.sleep(SETTLE)
-        children = psutil.Process(proc.pid).children(recursive=True)
         names = {}
-        for child in children:
+        for child in psutil.Process(proc.pid).children(recursive=True):
             cmd = " ".join(child.cmdline())
             if "dmpc.cli plant" in cmd:
                 names[child.pid] = "coordinator (plant process)"
             elif child.children() == [] and "forkserver" in cmd:
                 names[child.pid] = f"agent {len([n for n in names.values() if n.startswith('agent')]) + 1}"
-
-        def step_ms() -> dict:
-            lines = (out / "steps.jsonl").read_text().splitlines()[1:]
-            times = np.array([json.loads(line)["step_time"] for line in lines[-2000:]]) * 1e3
-            return {"p50_ms": float(np.median(times)), "mean_ms": float(times.mean())}
-
-        return window(proc, list(names), names, seconds, step_ms)
+        reading = cpu_window([proc], names, seconds, "run")
+        lines = (out / "steps.jsonl").read_text().splitlines()[1:]
+        times = np.array([json.loads(line)["step_time"] for line in lines[-2000:]]) * 1e3
+        return per_step(reading, float(times.mean()), float(np.median(times)), names)
     finally:
         proc.wait()
 
 
 def profile_floor(steps: int, seconds: float, compute_us: float) -> dict:
-    spec = floor_spec(4, steps, compute_us, ROOT)
-    tmp = Path(tempfile.mkdtemp(prefix="dmpc-floor-profile-"))
-    (tmp / "spec.json").write_text(json.dumps(asdict(spec)))
-    port = free_tcp_port()
-    base = [sys.executable, "-m", "dmpc.bench_floor", str(tmp / "spec.json"), str(port)]
-    procs = [subprocess.Popen(base + ["coordinator", str(tmp / "times.json")], cwd=ROOT)]
-    time.sleep(0.3)
-    procs += [subprocess.Popen(base + ["agent", str(i)], cwd=ROOT) for i in range(4)]
-    names = {procs[0].pid: "floor coordinator", **{p.pid: f"floor agent {i + 1}" for i, p in enumerate(procs[1:])}}
-    try:
+    readings: list[dict] = []
+    names: dict[int, str] = {}
+
+    def observe(procs: list[subprocess.Popen]) -> None:
+        names.update({procs[0].pid: "floor coordinator", **{p.pid: f"floor agent {i + 1}" for i, p in enumerate(procs[1:])}})
         time.sleep(SETTLE)
-        before, t0 = thread_cpu(list(names)), time.monotonic()
-        time.sleep(seconds)
-        after, elapsed = thread_cpu(list(names)), time.monotonic() - t0
-        if any(p.poll() is not None for p in procs):
-            raise SystemExit("the floor ended inside the window: give it more --steps")
-    finally:
-        for p in procs:
-            p.wait()
-    # the floor writes its step times at its end: their mean gives the window's step count
-    times = np.array(json.loads((tmp / "times.json").read_text())) * 1e3
-    steps_in_window = elapsed * 1e3 / float(times.mean())
-    rows = per_step(before, after, steps_in_window, names)
-    return {"step_ms_p50": float(np.median(times)), "steps_in_window": steps_in_window, "processes": rows,
-            "total_us": sum(r["main_us"] + r["zenoh_us"] for r in rows)}
+        readings.append(cpu_window(procs, names, seconds, "floor"))
+
+    result = measure(floor_spec(4, steps, compute_us, ROOT), while_running=observe)
+    if not result["completed"]:
+        raise SystemExit(f"the floor failed: {result['reason']}")
+    return per_step(readings[0], result["step_ms_mean"], result["step_ms_p50"], names)
 
 
 def show(label: str, result: dict) -> None:
     print(f"{label}: step median {result['step_ms_p50']:.2f} ms, CPU {result['total_us']:.0f} us per step "
           f"({result['steps_in_window']:.0f} steps in the window)")
     for row in result["processes"]:
-        print(f"  {row['process']:<28} main thread {row['main_us']:6.0f} us   Zenoh's threads {row['zenoh_us']:5.0f} us")
+        print(f"  {row['process']:<28} main thread {row['main_us']:6.0f} us   other (Zenoh's) threads {row['other_us']:5.0f} us")
 
 
 def main() -> None:

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -173,14 +174,19 @@ def run_agent(spec: FloorSpec, i: int, port: int) -> None:
         session.close()
 
 
-def measure(spec: FloorSpec, timeout: float = 600.0) -> dict:
-    """Run the floor loop as M + 1 processes; its step times' median and p99 in ms.
+def measure(spec: FloorSpec, timeout: float = 600.0,
+            while_running: Callable[[list[subprocess.Popen]], None] | None = None) -> dict:
+    """Run the floor loop as M + 1 processes; its step times' median, p99 and mean in ms.
+
+    ``while_running`` is called with the processes (the coordinator first) once all are started,
+    to observe them while they step (benchmarks/step_profile.py reads their CPU time).
 
     Returns
     -------
     dict
-        ``step_ms_p50``, ``step_ms_p99``, ``steps``, and the spec's figures; ``completed`` False
-        with a ``reason`` if a process failed or the loop did not end within ``timeout`` s.
+        ``step_ms_p50``, ``step_ms_p99``, ``step_ms_mean``, ``steps``, and the spec's figures;
+        ``completed`` False with a ``reason`` if a process failed or the loop did not end within
+        ``timeout`` s.
     """
     port = free_tcp_port()
     with tempfile.TemporaryDirectory(prefix="dmpc-floor-") as tmp:
@@ -193,6 +199,8 @@ def measure(spec: FloorSpec, timeout: float = 600.0) -> dict:
         end = time.monotonic() + timeout
         failure = ""
         try:
+            if while_running is not None:
+                while_running(procs)
             for proc in procs:
                 code = proc.wait(max(1.0, end - time.monotonic()))
                 if code != 0 and not failure:
@@ -210,7 +218,7 @@ def measure(spec: FloorSpec, timeout: float = 600.0) -> dict:
             return {**info, "completed": False, "reason": failure or "no times written"}
         t = np.array(json.loads(out.read_text())) * 1e3
     return {**info, "completed": True, "steps": int(t.size), "step_ms_p50": float(np.median(t)),
-            "step_ms_p99": float(np.percentile(t, 99))}
+            "step_ms_p99": float(np.percentile(t, 99)), "step_ms_mean": float(t.mean())}
 
 
 def main(argv: list[str]) -> None:
