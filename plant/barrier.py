@@ -28,7 +28,7 @@ from dmpc.methods.policy import TerminalPolicy
 from dmpc.mpc_qp import plan_cost
 from dmpc.plant.dynamics import Plant
 from dmpc.qp_status import SOLVED, QPStatus
-from dmpc.security.rejects import MAX_MAGNITUDE, clearly_in_range, magnitude
+from dmpc.security.rejects import MAX_MAGNITUDE, STALE, clearly_in_range, magnitude
 from dmpc.steps import ProtocolOptions, StepRecord
 from dmpc.system import CoupledSystem, LinearSet, project_onto
 from dmpc.trajectories import Plan, candidate_plan, shifted_input
@@ -38,7 +38,6 @@ KNOWN_STATUSES = frozenset(s.value for s in QPStatus)
 # so an honest plan stays well inside, and anything beyond is refused.
 INPUT_TOLERANCE = 1e-6
 INPUT_REFUSED = "input outside U_i"
-STALE = "stale"  # a plan for a closed round: normal in realtime (it came after the deadline)
 
 
 def input_excess(input_set: LinearSet, v: np.ndarray) -> float:

@@ -17,10 +17,10 @@ from dmpc.bus import keys
 from dmpc.bus.codec import MAX_REASON, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus
 from dmpc.bus.messages import PROTOCOL_VERSION, PlanMessage, Ready, Stop, design_claim
-from dmpc.plant.barrier import (STALE, ApplyInputs, Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted,
+from dmpc.plant.barrier import (ApplyInputs, Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted,
                                 input_excess)
 from dmpc.plant.plant_link import PlantLink
-from dmpc.security.rejects import Rejections
+from dmpc.security.rejects import STALE, Rejections
 from dmpc.steps import StepRecord
 
 log = logging.getLogger("dmpc.plant")

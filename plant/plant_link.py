@@ -18,7 +18,7 @@ from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.interface import Bus, Timer
 from dmpc.bus.messages import Inputs, State
 from dmpc.plant.state_inbox import StateInbox
-from dmpc.security.rejects import Rejections
+from dmpc.security.rejects import STALE, Rejections
 from dmpc.system import CoupledSystem
 
 REPEAT = 0.5
@@ -107,24 +107,26 @@ class PlantLink:
         try:
             msg = decode(payload)
         except DecodeError as exc:
-            self.inbox.last_problem[source] = str(exc)
-            self.rejects(source, str(exc))
+            self._drop(source, str(exc))
             return
         if not isinstance(msg, State) or msg.run != self.run_id:
-            self.inbox.last_problem[source] = "not a state of this run"
-            self.rejects(source, "not a state of this run")
+            self._drop(source, "not a state of this run")
             return
         problem = self.inbox.problem(source, msg)
         if problem is not None:
-            if problem != "stale":  # copies of the last state are normal after a repeat
-                self.inbox.last_problem[source] = problem
-                self.rejects(source, problem)
+            if problem != STALE:  # copies of the last state are normal after a repeat
+                self._drop(source, problem)
             return
         k = self.inbox.k
         x = self.inbox.take(msg)
         if x is not None and not self._stopped:
             self._cancel()
             self.on_state(k, x)
+
+    def _drop(self, source: str, why: str) -> None:
+        """Count a dropped state and keep why, to name it if the step's state never completes."""
+        self.inbox.last_problem[source] = why
+        self.rejects(source, why)
 
     def on_alive(self, role: str, alive: bool) -> None:
         """The liveliness token of ``role`` appeared or went (the host watches every token)."""

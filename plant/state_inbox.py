@@ -11,7 +11,7 @@ import numpy as np
 
 from dmpc.bus import keys
 from dmpc.bus.messages import State
-from dmpc.security.rejects import MAX_MAGNITUDE
+from dmpc.security.rejects import MAX_MAGNITUDE, STALE
 from dmpc.system import CoupledSystem
 
 
@@ -62,7 +62,7 @@ class StateInbox:
             if x.size and float(np.abs(x).max()) > MAX_MAGNITUDE:
                 return f"the state of subsystem {name} is out of range (beyond {MAX_MAGNITUDE:g})"
         if msg.k <= self.done:
-            return "stale"  # a copy of a state already taken (the plant repeats x(0), answers repeats)
+            return STALE  # a copy of a state already taken (the plant repeats x(0), answers repeats)
         if msg.k != self.k:
             return f"state of step {msg.k} not awaited"
         return None

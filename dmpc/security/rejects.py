@@ -14,6 +14,9 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 UNKNOWN = "(unknown)"
+STALE = "stale"
+"""Why the coordinator drops a plan of a closed round, or a copy of a state already taken: normal
+(a plan after its round's deadline in realtime, a state the plant repeats), so not counted."""
 LOG_INTERVAL = 1.0
 
 
