@@ -288,6 +288,7 @@ def _fork_burst(sock: socket.socket, children: set[int], main: Callable[[], None
                 break
             try:
                 argv = json.loads(data)["argv"]
+                server = os.getpid()
                 pid = os.fork()
             except Exception as exc:  # noqa: BLE001
                 for f in fds:
@@ -296,7 +297,7 @@ def _fork_burst(sock: socket.socket, children: set[int], main: Callable[[], None
                 continue
             if pid == 0:
                 os.close(release)
-                _child(sock, fds[0], argv, gate, main)  # never returns
+                _child(sock, fds[0], argv, gate, main, server)  # never returns
             children.add(pid)
             for f in fds:
                 os.close(f)
@@ -339,9 +340,11 @@ def _reap(sock: socket.socket, children: set[int], block: bool = False) -> None:
             return
 
 
-def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: Callable[[], None]) -> None:
-    """In the forked agent: its own output, default signals, tied to the server, then ``dmpc ARGV``
-    once ``gate`` (a pipe's read end) reports the end of the burst."""
+def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: Callable[[], None],
+           server: int) -> None:
+    """In the forked agent: its own output, default signals, tied to the server (pid ``server``),
+    then ``dmpc ARGV`` once ``gate`` (a pipe's read end) reports the end of the burst, or the
+    server's end."""
     code = 1
     try:
         sock.close()
@@ -354,11 +357,10 @@ def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: C
         # from the first instant, as the command will: a SIGTERM before it installs its own
         # handler must still end it through KeyboardInterrupt (exit 130), not kill it outright
         sigterm_as_interrupt()
-        parent = os.getppid()
         _die_with_parent()
         _name_process(b"dmpc-" + " ".join(argv[:1]).encode())
-        if os.getppid() != parent:
-            os._exit(1)  # the server died while forking
+        if os.getppid() != server:
+            os._exit(1)  # the server died before the agent was tied to it (the gate opens then too)
         sys.argv = ["dmpc", *argv]
         main()
         code = 0
