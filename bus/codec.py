@@ -172,12 +172,10 @@ def _array(value, name: str, ndim: int, allow_nan: bool = False, dtype: str = "<
     if type(data) is not bytes or count > MAX_ARRAY_ELEMENTS or len(data) != 8 * count:
         raise DecodeError(f"{name}: data length does not match shape {shape}")
     # read-only view on the payload: nothing downstream writes into received arrays
-    flat = np.frombuffer(data, dtype=dtype)
-    # a finite sum of squares proves every value finite in one cheap call; otherwise look closely
-    if dtype == "<f8" and not math.isfinite(flat.dot(flat)):
-        if not np.isfinite(flat).all() and (not allow_nan or np.isinf(flat).any()):
-            raise DecodeError(f"{name}: non-finite values")
-    return flat.reshape(shape)
+    arr = np.frombuffer(data, dtype=dtype).reshape(shape)
+    if dtype == "<f8" and not np.isfinite(arr).all() and (not allow_nan or np.isinf(arr).any()):
+        raise DecodeError(f"{name}: non-finite values")
+    return arr
 
 
 def _parse_release(b: dict) -> Release:

@@ -132,12 +132,13 @@ def clearly_in_range(*values) -> bool:
     says nothing (ask :func:`magnitude`); one cheap call per array for the common case of a plan
     in range."""
     total = 0.0
-    for a in values:
-        if isinstance(a, np.ndarray):
-            flat = a.ravel()
-            total += float(flat.dot(flat))
-        else:
-            total += float(a) * float(a)
+    with np.errstate(over="ignore"):  # entries beyond 1e154 overflow the sum to inf: not in range, no warning
+        for a in values:
+            if isinstance(a, np.ndarray):
+                flat = a.ravel()
+                total += float(flat.dot(flat))
+            else:
+                total += float(a) * float(a)
     return total < _CLEARLY_IN_RANGE  # False for NaN
 
 
