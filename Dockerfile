@@ -15,6 +15,7 @@ COPY pyproject.toml README.md ./
 COPY dmpc ./dmpc
 COPY agents ./agents
 COPY plant ./plant
+COPY coordinator ./coordinator
 COPY bus ./bus
 RUN pip install .
 COPY scenarios ./scenarios

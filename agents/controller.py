@@ -12,10 +12,10 @@ import numpy as np
 
 from dmpc.agents.local_qp import LocalQP, QPSolution
 from dmpc.bus.messages import PlanMessage, Release
-from dmpc.design import Design
-from dmpc.methods import terminal_policy
-from dmpc.system import CoupledSystem
-from dmpc.trajectories import Plan, assumed_trajectory, coupling_feedforward
+from dmpc.core.system import CoupledSystem
+from dmpc.core.trajectories import Plan, assumed_trajectory, coupling_feedforward
+from dmpc.methods import DEFAULT_METHOD, Method, terminal_policy
+from dmpc.offline import ControllerDesign
 
 
 class AgentController:
@@ -24,7 +24,7 @@ class AgentController:
     Parameters
     ----------
     system : CoupledSystem
-    design : Design
+    design : ControllerDesign
     index : int
         0-based subsystem index.
     coupling : {"feedforward", "nominal"}
@@ -34,8 +34,8 @@ class AgentController:
         A distributed method of :mod:`dmpc.methods`: it sets the terminal rows of QP_i.
     """
 
-    def __init__(self, system: CoupledSystem, design: Design, index: int, coupling: str = "feedforward",
-                 solver_settings: dict | None = None, method: str = "tv-box") -> None:
+    def __init__(self, system: CoupledSystem, design: ControllerDesign, index: int, coupling: str = "feedforward",
+                 solver_settings: dict | None = None, method: Method = DEFAULT_METHOD) -> None:
         self.index = index
         self.system = system
         sub = system.subsystems[index]
@@ -102,6 +102,6 @@ class AgentController:
         x = release.x
         states = {j: x[part] for j, part in self._state_slices.items()}
         sol = self.solve(release.k, states, release.centres[self._own], float(release.sizes[self.index]), plans)
-        return PlanMessage(run=run_id, k=release.k, iteration=release.iteration, sender=self.name,
+        return PlanMessage(run=run_id, k=release.k, round=release.round, sender=self.name,
                            status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
                            qp_iterations=int(sol.iterations), sent_at=clock() if clock is not None else 0.0)

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmpc.design.tubes import Tightening
+from dmpc.core.mpc_qp import DEFAULT_SETTINGS, MpcQP, QPSolution, QPStatus, StageRows
+from dmpc.core.system import Subsystem
 from dmpc.methods.terminal_rows import AgentTerminal, BoxTerminal
-from dmpc.mpc_qp import DEFAULT_SETTINGS, MpcQP, QPSolution, QPStatus, StageRows
-from dmpc.system import Subsystem
+from dmpc.offline.tubes import Tightening
 
 __all__ = ["DEFAULT_SETTINGS", "LocalQP", "QPSolution", "QPStatus"]
 

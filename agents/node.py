@@ -12,16 +12,14 @@ import os
 from collections import OrderedDict
 from collections.abc import Callable
 
-import numpy as np
-
 from dmpc.agents.controller import AgentController
 from dmpc.bus import keys
 from dmpc.bus.codec import MAX_NAME, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus, Timer
 from dmpc.bus.messages import COORDINATOR, PlanMessage, Ready, Release, Stop, design_claim
-from dmpc.qp_status import SOLVED
+from dmpc.core.qp_status import SOLVED
+from dmpc.core.trajectories import Plan
 from dmpc.security.rejects import Rejections, out_of_range
-from dmpc.trajectories import Plan
 
 log = logging.getLogger("dmpc.agent")
 KEEP_PLANS = 8
@@ -85,12 +83,10 @@ class AgentNode:
         self.duplicates = 0
         self._latest: tuple[int, int] | None = None  # newest release accepted
         self.solves = 0
-        self.stale_assumptions = 0
         self.peers_alive: set[str] = set()
         self.coordinator_seen = False
         self.coordinator_lost = False
         self.rejoins = 0
-        self.ready_sent = 0
         self._released = False
         self.released_at: float | None = None  # bus time of the first release
         self._first_k: int | None = None
@@ -158,7 +154,6 @@ class AgentNode:
         msg = Ready(run=self.run_id, sender=self.name, design_digest=self.design_digest, pid=os.getpid(),
                     scenario=self.scenario, horizon=self.controller.N)
         self.bus.publish(keys.ready(self.run_id, self.name), encode(msg))
-        self.ready_sent += 1
         self._ready_timer = self.bus.call_later(self._repeat, self._send_ready)
 
     # ------------------------------------------------------------------ receive
@@ -215,10 +210,10 @@ class AgentNode:
         msg = self._decode(key, payload, Release)
         if msg is None or self.name in msg.skipped or not self._checked(self._check_release, msg, COORDINATOR):
             return  # a round that skips this agent is not for it: the coordinator counts it as lost
-        if (msg.k, msg.iteration) <= max(self._last_done, self._latest or self._last_done):
+        if (msg.k, msg.round) <= max(self._last_done, self._latest or self._last_done):
             self.duplicates += 1  # seen already, or older than one seen: a newer release supersedes it
             return
-        self._latest = (msg.k, msg.iteration)
+        self._latest = (msg.k, msg.round)
         self._prune_plans()
         if not self._released:
             self._released = True
@@ -238,15 +233,15 @@ class AgentNode:
             return "release from another sender"
         if self._latest is not None:
             k, it = self._latest
-            if msg.k > k + RELEASE_WINDOW or (msg.k == k and msg.iteration > it + RELEASE_WINDOW):
-                return f"future: step {msg.k} round {msg.iteration} is too far ahead of step {k} round {it}"
+            if msg.k > k + RELEASE_WINDOW or (msg.k == k and msg.round > it + RELEASE_WINDOW):
+                return f"future: step {msg.k} round {msg.round} is too far ahead of step {k} round {it}"
         if msg.x.shape != (self.system.n,):
             return "release state has the wrong shape"
         if msg.sizes.shape != (self.system.M,):
             return "release sizes do not match the agents"
         for name, j in self.neighbour_names.items():
             ref_k, ref_it = msg.assumed[j]
-            if ref_k >= 0 and (ref_k, ref_it) >= (msg.k, msg.iteration):
+            if ref_k >= 0 and (ref_k, ref_it) >= (msg.k, msg.round):
                 return f"assumed plan of {name} is not older than the release"
         for name, (z, v) in msg.provided.items():
             if name not in self._known:
@@ -264,10 +259,10 @@ class AgentNode:
         if msg.status not in SOLVED:
             return  # the coordinator falls back for it; nothing to assume from
         store = self.plans[name]
-        if (msg.k, msg.iteration) in store:
+        if (msg.k, msg.round) in store:
             self.duplicates += 1  # the first copy stays
             return
-        store[(msg.k, msg.iteration)] = Plan(msg.k, msg.iteration, msg.z, msg.v)
+        store[(msg.k, msg.round)] = Plan(msg.k, msg.round, msg.z, msg.v)
         while len(store) > KEEP_PLANS:
             store.popitem(last=False)
         if self.pending is not None:
@@ -328,15 +323,13 @@ class AgentNode:
                 self._arm_wait()
                 self.bus.expect(keys.plan(self.run_id, name))
                 return
-            if ref is not None and (plan is None or (plan.k, plan.iteration) != ref):
-                self.stale_assumptions += 1
             plans[j] = plan
         self.pending = None
         self._cancel_wait()
         self.bus.expect(None)
         msg = self.controller.answer(release, plans, self.run_id, clock=self.bus.now)
         self.solves += 1
-        self._last_done = (release.k, release.iteration)
+        self._last_done = (release.k, release.round)
         self.bus.publish(keys.plan(self.run_id, self.name), encode(msg))
 
     def _arm_wait(self) -> None:
@@ -361,10 +354,6 @@ class AgentNode:
     def released(self) -> bool:
         """True once the first release arrived (the run has started for this agent)."""
         return self._released
-
-    @property
-    def rejected_total(self) -> int:
-        return int(np.sum(list(self.rejected.values()))) if self.rejected else 0
 
     def report(self) -> dict:
         """What this agent dropped and ignored, for the records (``summary.json`` ``agents``).

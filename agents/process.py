@@ -16,9 +16,9 @@ from dmpc.agents.node import AgentNode
 from dmpc.bus import keys
 from dmpc.bus.interface import Bus
 from dmpc.bus.messages import COORDINATOR_GRACE
-from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from dmpc.prepared import Prepared
 from dmpc.records.agent_reports import FIRST_RELEASE
-from dmpc.run_spec import Prepared
+from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 
 log = logging.getLogger("dmpc.agent")
 
@@ -41,6 +41,19 @@ class AgentOutcome:
     code: int
     message: str
     report: dict = field(default_factory=dict)
+
+
+def agent_node(prepared: Prepared, name: str, bus: Bus, run_id: str,
+               on_change: Callable[[], None] | None = None) -> AgentNode:
+    """The controller of subsystem ``name`` of a prepared run, as a node on ``bus`` (not announced yet).
+
+    The one place that builds an agent from a prepared run: ``dmpc agent`` and ``dmpc simulate``
+    (:mod:`dmpc.runtime.inprocess`) both do it here.
+    """
+    controller = AgentController(prepared.system, prepared.design, prepared.names.index(name),
+                                 coupling=prepared.coupling, method=prepared.method)
+    return AgentNode(bus, controller, prepared.names, run_id, prepared.digest, plan_wait=prepared.plan_wait,
+                     scenario=prepared.name, on_change=on_change)
 
 
 def run_agent(prepared: Prepared, name: str, bus: Bus, run_id: str, startup_timeout: float) -> AgentOutcome:
@@ -76,13 +89,8 @@ def run_agents(prepared: Prepared, names: Sequence[str], bus: Bus, run_id: str, 
         In the order of ``names``.
     """
     changes = Changes()
-    nodes = {}
-    for name in names:
-        controller = AgentController(prepared.system, prepared.design, prepared.names.index(name),
-                                     coupling=prepared.coupling, method=prepared.method)
-        nodes[name] = AgentNode(bus_for(name) if bus_for else bus, controller, prepared.names, run_id,
-                                prepared.digest, plan_wait=prepared.plan_wait, scenario=prepared.name,
-                                on_change=changes)
+    nodes = {name: agent_node(prepared, name, bus_for(name) if bus_for else bus, run_id, on_change=changes)
+             for name in names}
     for node in nodes.values():
         node.announce()
     ends: dict[str, tuple[int, str]] = {}

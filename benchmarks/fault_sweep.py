@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dmpc.console import silence_c_stdout
+from dmpc.terminal.console import silence_c_stdout
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "scenarios" / "paper.yaml"
@@ -37,15 +37,15 @@ def run_case(overrides: dict) -> dict:
     """One in-process run of the paper's example with ``overrides``; its key figures."""
     from dmpc.records.run_folder import summarise, trajectory_arrays
     from dmpc.runtime.inprocess import simulate
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     prepared = prepare(load_scenario(SCENARIO, {"options.mode": "realtime", "options.deadline": DEADLINE,
                                                 **overrides}))
     records = []
     run = simulate(prepared, records.append)
-    if run.plant.failure:
-        raise RuntimeError(f"{overrides}: {run.plant.failure}")
+    if run.coordinator.failure:
+        raise RuntimeError(f"{overrides}: {run.coordinator.failure}")
     arrays = trajectory_arrays(prepared.system, records)
     summary = summarise(prepared.system, records, arrays)
     slack = constraint_slack(prepared.system, arrays["x"][:-1], arrays["u"])

@@ -12,8 +12,8 @@ import json
 import sys
 from pathlib import Path
 
-from dmpc.bench import calibration_ms
-from dmpc.bench_scale import HEADER, markdown_row, scale_row
+from dmpc.bench.common import calibration_ms
+from dmpc.bench.scale import HEADER, markdown_row, scale_row
 
 DEFAULT_ROWS = ["4:1:300", "16:1:150", "64:1:60", "256:64:30", "1024:128:10"]
 

@@ -1,6 +1,6 @@
 """Where a step's CPU goes at M = 4: each process's main thread and Zenoh's threads, run against floor.
 
-Runs the paper's example in lockstep with ``dmpc run`` and the bus floor (``dmpc.bench_floor``:
+Runs the paper's example in lockstep with ``dmpc run`` and the bus floor (``dmpc.bench.floor``:
 the same five processes, payloads and neighbours, nothing decoded or checked, the QP replaced by
 ``--compute-us`` of CPU), alternating, and while each is stepping reads every thread's CPU time
 from ``/proc/<pid>/task`` over a window of ``--window`` seconds. Prints, per process, the main
@@ -31,8 +31,9 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dmpc.bench import calibration_ms, floor_spec  # noqa: E402
-from dmpc.bench_floor import measure  # noqa: E402
+from dmpc.bench.common import calibration_ms  # noqa: E402
+from dmpc.bench.floor import measure  # noqa: E402
+from dmpc.bench.measures import floor_spec  # noqa: E402
 
 SETTLE = 2.5  # seconds after launch before the window opens: start-up and step 0 are over
 

@@ -16,9 +16,20 @@ from dataclasses import fields
 import msgpack
 import numpy as np
 
-from dmpc.bus.messages import (MESSAGE_TYPES, PROTOCOL_VERSION, TYPE_NAMES, Inputs, Message, PlanMessage, Ready,
-                               Release, State, Stop)
-from dmpc.qp_status import SOLVED
+from dmpc.bus.messages import (
+    MESSAGE_TYPES,
+    PROTOCOL_VERSION,
+    TYPE_NAMES,
+    Inputs,
+    Message,
+    PlanMessage,
+    Ready,
+    Release,
+    State,
+    Stop,
+)
+from dmpc.core.errors import DmpcError
+from dmpc.core.qp_status import SOLVED
 
 MAX_PAYLOAD = 1 << 20
 MAX_NAME = 64
@@ -30,7 +41,7 @@ VERSION_FIELD = "protocol"
 OLD_VERSION_FIELD = "schema"  # what protocol versions 1 and 2 called it
 
 
-class DecodeError(ValueError):
+class DecodeError(DmpcError, ValueError):
     """A payload that is not a valid message; the text says what is wrong."""
 
 
@@ -43,7 +54,17 @@ class VersionMismatch(DecodeError):
         super().__init__(f"{shown}; this process speaks protocol version {PROTOCOL_VERSION}")
 
 
-_FIELDS: dict[type, tuple[str, ...]] = {cls: tuple(f.name for f in fields(cls)) for cls in MESSAGE_TYPES.values()}
+# the wire names of the fields whose Python name differs (the Jacobi round kept its first wire name)
+_WIRE_NAME = {"round": "iteration"}
+_FIELDS: dict[type, tuple[str, ...]] = {cls: tuple(_WIRE_NAME.get(f.name, f.name) for f in fields(cls))
+                                        for cls in MESSAGE_TYPES.values()}
+
+
+def wire_fields(cls: type) -> tuple[str, ...]:
+    """The field names of message class ``cls`` as they appear on the wire, in order."""
+    return _FIELDS[cls]
+
+
 _FIELD_SETS: dict[type, frozenset] = {cls: frozenset(names) for cls, names in _FIELDS.items()}
 # fields a sender may leave out (added after the first release of the format); decode fills in the default
 _OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"})}
@@ -74,7 +95,7 @@ def _wire_array(value: np.ndarray) -> dict:
 
 
 def _plan_body(m: PlanMessage) -> dict:
-    return {VERSION_FIELD: PROTOCOL_VERSION, "type": "plan", "run": m.run, "k": _scalar(m.k), "iteration": _scalar(m.iteration),
+    return {VERSION_FIELD: PROTOCOL_VERSION, "type": "plan", "run": m.run, "k": _scalar(m.k), "iteration": _scalar(m.round),
             "sender": m.sender, "status": m.status, "z": _wire_array(m.z), "v": _wire_array(m.v),
             "cost": _scalar(m.cost), "solve_time": _scalar(m.solve_time), "qp_iterations": _scalar(m.qp_iterations),
             "sent_at": _scalar(m.sent_at)}
@@ -82,7 +103,7 @@ def _plan_body(m: PlanMessage) -> dict:
 
 def _release_body(m: Release) -> dict:
     return {VERSION_FIELD: PROTOCOL_VERSION, "type": "release", "run": m.run, "k": _scalar(m.k),
-            "iteration": _scalar(m.iteration), "x": _wire_array(m.x), "centres": _wire_array(m.centres),
+            "iteration": _scalar(m.round), "x": _wire_array(m.x), "centres": _wire_array(m.centres),
             "sizes": _wire_array(m.sizes), "assumed": _wire_array(m.assumed), "sender": m.sender,
             "skipped": list(m.skipped),
             "provided": {name: [_wire_array(z), _wire_array(v)] for name, (z, v) in m.provided.items()}}
@@ -212,7 +233,7 @@ def _parse_release(b: dict) -> Release:
         if z.shape[0] != v.shape[0] + 1:
             raise DecodeError(f"provided[{key}]: z needs one row more than v")
         parsed_provided[key] = (z, v)
-    return Release(run=_str(b["run"], "run"), k=_int(b, "k"), iteration=_int(b, "iteration"), x=x, centres=centres,
+    return Release(run=_str(b["run"], "run"), k=_int(b, "k"), round=_int(b, "iteration"), x=x, centres=centres,
                    sizes=sizes, assumed=assumed, sender=_str(b["sender"], "sender"), skipped=tuple(skipped),
                    provided=parsed_provided)
 
@@ -229,7 +250,7 @@ def _parse_plan(b: dict) -> PlanMessage:
     sent_at = _float(b, "sent_at")
     if solve_time < 0:
         raise DecodeError("solve_time: negative")
-    return PlanMessage(run=_str(b["run"], "run"), k=_int(b, "k"), iteration=_int(b, "iteration"),
+    return PlanMessage(run=_str(b["run"], "run"), k=_int(b, "k"), round=_int(b, "iteration"),
                        sender=_str(b["sender"], "sender"), status=status, z=z, v=v, cost=cost,
                        solve_time=solve_time, qp_iterations=_int(b, "qp_iterations"), sent_at=sent_at)
 

@@ -14,8 +14,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer
-
+from dmpc.bus.interface import AliveHandler, Broadcast, Bus, Handler, Timer
 
 # Fault links name the process that hosts the coordinator (and the simulated plant) "plant",
 # as its log and process name do; agents are named by their subsystems.
@@ -90,7 +89,6 @@ class FaultyBus(Bus):
         self.plan = plan
         self._rngs: dict[str, np.random.Generator] = {}
         self.dropped = 0
-        self.delayed = 0
 
     def _rng(self, source: str) -> np.random.Generator:
         rng = self._rngs.get(source)
@@ -115,7 +113,6 @@ class FaultyBus(Bus):
             if delay <= 0:
                 handler(key, payload)
                 return
-            self.delayed += 1
             self.inner.call_later(delay, lambda: handler(key, payload))
 
         return deliver
@@ -128,6 +125,9 @@ class FaultyBus(Bus):
 
     def expect(self, key: str | None) -> None:
         self.inner.expect(key)
+
+    def broadcast(self, key: str, encoding: str) -> Broadcast | None:
+        return self.inner.broadcast(key, encoding)  # observers are outside the run: no faults injected for them
 
     def declare_alive(self, key: str) -> None:
         self.inner.declare_alive(key)

@@ -18,6 +18,25 @@ class Timer(ABC):
         """Do not fire (no effect if it already fired)."""
 
 
+class Broadcast(ABC):
+    """A best-effort publisher on one key for observers outside the run (the live view): a
+    message may be lost, and ``put`` never waits for a slow subscriber. It may be used from
+    another thread than the one that runs the bus."""
+
+    @abstractmethod
+    def put(self, payload: bytes) -> None:
+        """Send ``payload`` if the transport can take it now; raise if it cannot send at all."""
+
+    @property
+    @abstractmethod
+    def matched(self) -> bool:
+        """Some subscriber matches the key now (nothing needs to be sent while none does)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Stop publishing; idempotent, never raises."""
+
+
 class Bus(ABC):
     """Publish/subscribe with liveliness and one clock."""
 
@@ -38,6 +57,11 @@ class Bus(ABC):
     def expect(self, key: str | None) -> None:
         """A hint: the node's next needed message comes on hot key ``key`` (None: any). Transports
         that wait on one hot key at a time wait on it; others ignore the hint."""
+
+    def broadcast(self, key: str, encoding: str) -> Broadcast | None:
+        """A :class:`Broadcast` on ``key`` with payloads of ``encoding`` (a MIME type), or None
+        for a transport that nothing outside the run can observe (the in-memory bus)."""
+        return None
 
     @abstractmethod
     def declare_alive(self, key: str) -> None:

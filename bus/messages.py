@@ -32,7 +32,7 @@ COORDINATOR_GRACE = 1.5
 
 @dataclass(frozen=True)
 class Release:
-    """Step k, round ``iteration``, released to every agent at once.
+    """Step k, Jacobi round ``round`` (``iteration`` on the wire), released to every agent at once.
 
     One message per round for the whole run: each agent reads its own part (the states of N_i,
     its centre and size, its neighbours' references). Agents are indexed in the scenario's order.
@@ -59,7 +59,7 @@ class Release:
 
     run: str
     k: int
-    iteration: int
+    round: int
     x: np.ndarray
     centres: np.ndarray
     sizes: np.ndarray
@@ -76,7 +76,7 @@ class Release:
 
 @dataclass(frozen=True)
 class PlanMessage:
-    """Agent ``sender``'s plan for (k, iteration).
+    """Agent ``sender``'s plan for step k, Jacobi round ``round`` (``iteration`` on the wire).
 
     Attributes
     ----------
@@ -96,7 +96,7 @@ class PlanMessage:
 
     run: str
     k: int
-    iteration: int
+    round: int
     sender: str
     status: str
     z: np.ndarray

@@ -24,13 +24,15 @@ import socket
 import threading
 from dataclasses import dataclass
 
+from dmpc.core.errors import DmpcError
+
 CHUNK = 65536
 QUEUE_CHUNKS = 1024  # per direction: at most 64 MiB held; a full queue stops reading (TCP back-pressure)
 
 _ADDRESS = re.compile(r"^(?:tcp/)?(?P<host>\[[0-9A-Fa-f:.%]+\]|[A-Za-z0-9_.-]+):(?P<port>\d{1,5})$")
 
 
-class RelayError(RuntimeError):
+class RelayError(DmpcError, RuntimeError):
     """The relay cannot run: its listening address is taken or invalid."""
 
 

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import zenoh
 
+from dmpc.core.errors import DmpcError
+
 MODES = ("peer", "client", "router")
 PROTOCOLS = ("tcp", "tls", "udp", "quic")
 
@@ -32,7 +34,7 @@ _RUST_LOCATION = re.compile(r"\s+at /\S+?\.rs:\d+\.?")
 _OS_ERROR = re.compile(r"\(os error (\d+)\)")
 
 
-class BusError(RuntimeError):
+class BusError(DmpcError, RuntimeError):
     """A transport failure: a session that cannot be opened, or a bus used after close."""
 
 

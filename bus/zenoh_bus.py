@@ -53,7 +53,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer, key_matches
+from dmpc.bus.interface import AliveHandler, Broadcast, Bus, Handler, Timer, key_matches
 from dmpc.bus.session import BusError, open_session, opens_abandoned, session_config
 
 log = logging.getLogger(__name__)
@@ -149,6 +149,33 @@ class _ZenohTimer(Timer):
 
     def cancel(self) -> None:
         self.cancelled = True
+
+
+class _ZenohBroadcast(Broadcast):
+    """A Zenoh publisher that drops what it cannot send at once, at low priority."""
+
+    def __init__(self, publisher: zenoh.Publisher) -> None:
+        self._publisher = publisher
+        self._closed = False
+
+    def put(self, payload: bytes) -> None:
+        self._publisher.put(payload)
+
+    @property
+    def matched(self) -> bool:
+        try:
+            return self._publisher.matching_status.matching
+        except Exception:  # noqa: BLE001 - a closing session matches nothing
+            return False
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._publisher.undeclare()
+        except Exception:  # noqa: BLE001 - best effort on the way out
+            pass
 
 
 class ZenohBus(Bus):
@@ -271,6 +298,14 @@ class ZenohBus(Bus):
             self._publisher(key).put(data)
         except zenoh.ZError as exc:
             raise BusError(f"publish on {key!r} failed: {exc}") from exc
+
+    def broadcast(self, key: str, encoding: str) -> Broadcast:
+        """A publisher for observers: congestion control DROP, best-effort reliability, low priority."""
+        with self._lock:
+            self._check_open()
+            return _ZenohBroadcast(self._session.declare_publisher(
+                _key_expr(key), encoding=encoding, congestion_control=zenoh.CongestionControl.DROP,
+                reliability=zenoh.Reliability.BEST_EFFORT, priority=zenoh.Priority.DATA_LOW, express=False))
 
     def _deliver_here(self, key: str, data: bytes) -> None:
         """Queue ``data`` for this bus's own subscribers of ``key`` (a shared bus)."""
@@ -540,10 +575,6 @@ class ZenohBus(Bus):
         if len(handlers) == 1:
             return handlers[0], str(sample.key_expr), data
         return handlers, str(sample.key_expr), data
-
-    def queue_depth(self) -> int:
-        """Events received and not yet dispatched."""
-        return self._queue.qsize()
 
     # -- shutdown --------------------------------------------------------------------------
 

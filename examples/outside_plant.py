@@ -12,9 +12,15 @@ again; inputs of any other step are ignored. Without ``--sensor`` it reports the
 ``sensor-NAME``, as one sensor process per subsystem would (it still simulates the whole plant,
 deterministically, so several such processes agree).
 
-It exits 0 when the coordinator stops the run with "finished", 1 when it stops it otherwise,
-when the coordinator's liveliness token is gone for 1.5 s, or when no coordinator shows up
-within ``--startup-timeout``; 2 on bad arguments. Its last line says why.
+It may be started before the coordinator listens: opening the Zenoh session keeps trying
+(``connect/timeout_ms``, ``connect/retry``) for up to ``--startup-timeout`` seconds, the time it
+also waits for the coordinator's liveliness token. It subscribes to the exact keys ``inputs`` and
+``control`` (under TLS the access control refuses wider ones without a word).
+
+It exits 0 when the coordinator stops the run with "finished"; 1 when it stops it otherwise
+("failed: ..." or "aborted"), when the coordinator's liveliness token is gone for 1.5 s, or when
+no coordinator is reached or seen within ``--startup-timeout``; 130 on Ctrl-C; 2 on bad
+arguments. Its last line says why.
 """
 from __future__ import annotations
 
@@ -168,11 +174,20 @@ class OutsidePlant:
 
 
 # ------------------------------------------------------------------------------------ transport
+CONNECT_RETRY = {"period_init_ms": 1000, "period_max_ms": 4000, "period_increase_factor": 2}
+"""Waits between tries to reach the endpoint: 1 s, then doubling up to 4 s."""
+
+
 def zenoh_config(connect: str, tls: Path | None, role: str, timeout: float) -> zenoh.Config:
-    """A client session to ``connect`` only: multicast scouting off, TLS files of ``role`` if given."""
+    """A client session to ``connect`` only: multicast scouting off, TLS files of ``role`` if given.
+
+    Opening it keeps trying for ``timeout`` seconds (the coordinator may not listen yet), and
+    then fails (docs/protocol.md, "Connecting").
+    """
     config = zenoh.Config()
     settings = {"mode": "client", "scouting/multicast/enabled": False, "connect/endpoints": [connect],
-                "connect/timeout_ms": int(timeout * 1000), "connect/exit_on_failure": True}
+                "connect/timeout_ms": int(timeout * 1000), "connect/exit_on_failure": True,
+                "connect/retry": CONNECT_RETRY}
     if tls is not None:
         settings.update({"transport/link/tls/root_ca_certificate": str(tls / "ca.pem"),
                          "transport/link/tls/connect_certificate": str(tls / f"{role}.pem"),
@@ -190,6 +205,8 @@ def _json5(value) -> str:
         return str(value)
     if isinstance(value, list):
         return "[" + ", ".join(_json5(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{key}: {_json5(v)}" for key, v in value.items()) + "}"
     return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
@@ -299,7 +316,8 @@ def main(argv: list[str] | None = None) -> int:
         session = zenoh.open(zenoh_config(args.connect, args.tls, plant.roles[0], args.startup_timeout))
     except zenoh.ZError as exc:
         reason = re.sub(r"\s+at /\S+?\.rs:\d+\.?", "", str(exc)).strip()  # drop Zenoh's source locations
-        print(f"outside plant ({who}): cannot reach {args.connect} ({reason})", flush=True)
+        print(f"outside plant ({who}): cannot reach {args.connect} within {args.startup_timeout:g} s ({reason})",
+              flush=True)
         return 1
     try:
         code, why = serve(plant, session, args.startup_timeout)

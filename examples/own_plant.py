@@ -11,9 +11,9 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from plants import carts_stiffening_springs
 
 import dmpc
-from plants import carts_stiffening_springs
 
 CARTS = Path(__file__).resolve().parents[1] / "scenarios" / "carts-continuous.yaml"
 

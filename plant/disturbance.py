@@ -1,6 +1,6 @@
 """Additive plant disturbances w(k): seeded random sequences, or a given array.
 
-Pure numerics (reading a file is done by the caller, dmpc.runtime.plant_setup). A sequence is
+Pure numerics (reading a file is done by the caller, dmpc.setup.plant). A sequence is
 drawn whole before the run, so that the plant process of ``dmpc run`` and ``dmpc simulate``
 apply the same w(k), and the first K rows do not depend on how many steps were drawn.
 """

@@ -5,7 +5,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from dmpc.system import CoupledSystem
+from dmpc.core.system import CoupledSystem
 
 
 class Plant:

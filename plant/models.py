@@ -11,13 +11,14 @@ from collections.abc import Callable
 
 import numpy as np
 
+from dmpc.core.errors import DmpcError
+from dmpc.core.system import CoupledSystem
 from dmpc.plant.disturbance import DisturbanceSequence
 from dmpc.plant.dynamics import Plant
-from dmpc.run_spec import PlantFunction, Prepared
-from dmpc.system import CoupledSystem
+from dmpc.prepared import PlantFunction, Prepared
 
 
-class PlantModelError(RuntimeError):
+class PlantModelError(DmpcError, RuntimeError):
     """The user's plant function failed or returned something that is not a state.
 
     The exception it raised, if any, is the ``__cause__`` (its traceback shows the user's code).

@@ -1,122 +1,58 @@
-"""``dmpc plant``: the plant simulator and step barrier as a process on the Zenoh bus."""
+"""``dmpc plant --coordinator external``: the simulated plant alone, as a process on the bus."""
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 from dmpc.bus.interface import Bus
-from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
-from dmpc.methods import terminal_policy
-from dmpc.plant.barrier import Coordinator
+from dmpc.bus.messages import COORDINATOR_GRACE
 from dmpc.plant.models import make_plant
-from dmpc.plant.node import PlantNode
-from dmpc.records.agent_reports import merge_agent_reports, report_path
-from dmpc.records.files import LOGS, STEP_LOG
-from dmpc.records.run_folder import RecordWriteError
-from dmpc.records.session import RunRecorder
-from dmpc.run_spec import Prepared
-from dmpc.watch.telemetry import Telemetry, open_telemetry
-
-LINGER = 2.0
-REPORT_WAIT = 1.0
-STOP_REPEAT = 0.2
+from dmpc.plant.role import PlantRole
+from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 
 
 @dataclass(frozen=True)
-class PlantOutcome:
+class PlantRoleOutcome:
     code: int
     message: str
-    summary: dict | None
+    steps: int
 
 
-def run_plant(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, startup_timeout: float,
-              runtime: str = "multi-process", external_plant: bool = False,
-              plant_timeout: float = 10.0) -> PlantOutcome:
-    """Wait for every agent, step the run to the end, write the records.
+def run_plant_role(prepared, bus: Bus, run_id: str, startup_timeout: float,
+                   sensors: list[str] | None = None) -> PlantRoleOutcome:
+    """Serve the plant (or the sensors of ``sensors``) until the coordinator stops the run.
 
-    ``external_plant``: the plant is outside this process (docs/protocol.md); x(0) is awaited with
-    the agents, and each step's state for at most ``plant_timeout`` seconds.
-    Ctrl-C (or SIGTERM) stops the agents and keeps every completed step in the run folder.
+    Parameters
+    ----------
+    prepared : dmpc.prepared.Prepared
+        The scenario and plant model (``prepared.plant``) to simulate.
+    bus : Bus
+        An open bus; closed by the caller.
+    run_id : str
+    startup_timeout : float
+        Seconds to wait for step 0's inputs.
+    sensors : list of str, optional
+        Subsystems reported one by one as ``sensor-<name>``; None reports the whole state.
     """
-    policy = terminal_policy(prepared.method, prepared.system, prepared.design)
-    plant = None if external_plant else make_plant(prepared)
-    outside = {"plant": {"model": "outside"}} if external_plant else {}  # what the summary says of the plant
-    coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id,
-                              policy=policy, clock=bus.now)
-    telemetry = open_telemetry(bus, run_id, prepared)
-    node = PlantNode(bus, coordinator, prepared.digest, recorder.on_step, mode=prepared.mode, dt=prepared.dt,
-                     deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry,
-                     plant_timeout=plant_timeout if external_plant else None)
-    node.announce()
+    who = "plant" if sensors is None else f"sensors {', '.join(sensors)}"
+    role = PlantRole(bus, make_plant(prepared), prepared.system, run_id, sensors=sensors)
+    role.announce()
     try:
-        if not bus.run(until=lambda: node.started or node.finished, timeout=startup_timeout):
-            reason = node.startup_failure(startup_timeout)
-            node.fail(reason)
-            summary = recorder.complete(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
-                                        rejected_reasons=node.rejects.reasons)
-            finish(bus, node, summary, telemetry, recorder)
-            return PlantOutcome(EXIT_FAILED, reason, summary)
-        bus.run(until=lambda: node.finished)
-    except RecordWriteError as exc:
-        reason = f"{node.who}: {exc}; the run stopped after {recorder.steps} steps, which are kept in {STEP_LOG}"
-        node.fail(reason)
-        summary = recorder.complete_if_possible(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
-                                                rejected_reasons=node.rejects.reasons,
-                                                inputs_refused=coordinator.inputs_refused)
-        finish(bus, node, summary, telemetry, recorder)
-        return PlantOutcome(EXIT_FAILED, reason, summary)
+        started = bus.run(until=lambda: role.k > 0 or role.stopped, timeout=startup_timeout)
+        if not started:
+            seen = "seen alive" if role.coordinator_seen else "not seen alive"
+            return PlantRoleOutcome(EXIT_FAILED, f"{who}: no inputs from the coordinator within {startup_timeout:g} s "
+                                                 f"(the coordinator: {seen}; run id '{run_id}')", 0)
+        while True:
+            bus.run(until=lambda: role.stopped or role.coordinator_lost)
+            if role.stopped:
+                break
+            if not bus.run(until=lambda: role.stopped or not role.coordinator_lost, timeout=COORDINATOR_GRACE):
+                return PlantRoleOutcome(EXIT_FAILED, f"{who}: lost the coordinator after {role.k} steps; exiting",
+                                        role.k)
     except KeyboardInterrupt:
-        node.abort("aborted")
-        summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", rejected=node.rejected,
-                                    rejected_reasons=node.rejects.reasons, inputs_refused=coordinator.inputs_refused)
-        finish(bus, node, summary, telemetry, recorder)
-        return PlantOutcome(EXIT_INTERRUPTED, f"{node.who}: interrupted after {coordinator.k} steps", summary)
-    summary = recorder.complete(**outside, runtime=runtime, failure=node.failure or None, rejected=node.rejected,
-                                rejected_reasons=node.rejects.reasons, duplicates=coordinator.duplicates,
-                                inputs_refused=coordinator.inputs_refused)
-    finish(bus, node, summary, telemetry, recorder)
-    if node.failure:
-        return PlantOutcome(EXIT_FAILED, f"{node.who}: {node.failure}", summary)
-    if summary.get("verdict") == "failed":
-        kinds = ", ".join(dict.fromkeys(f["kind"] for f in summary["failures"]))
-        return PlantOutcome(EXIT_VERDICT, f"{node.who}: finished {coordinator.k} steps; verdict failed ({kinds})", summary)
-    return PlantOutcome(EXIT_OK, f"{node.who}: finished {coordinator.k} steps", summary)
-
-
-def finish(bus: Bus, node: PlantNode, summary: dict | None, telemetry: Telemetry | None,
-           recorder: RunRecorder | None = None) -> None:
-    """Tell observers how the run ended, wait for the agents to leave, then stop the telemetry.
-
-    In a run folder made by ``dmpc run`` (it has ``logs/``), the agents' reports are merged into
-    the summary once they have left, so the summary has them even if the launcher is gone.
-    """
-    if telemetry is not None and summary is not None:
-        telemetry.summary(summary)
-    try:
-        linger(bus, node)
-    finally:
-        if telemetry is not None:
-            telemetry.close()
-    if summary is not None and recorder is not None and (recorder.folder.path / LOGS).is_dir():
-        out = recorder.folder.path
-        deadline = time.monotonic() + REPORT_WAIT  # an agent writes its report just after leaving
-        while time.monotonic() < deadline and not all(report_path(out, n).exists() for n in node.names):
-            time.sleep(0.02)
-        merge_agent_reports(out, node.names)
-
-
-def linger(bus: Bus, node: PlantNode, timeout: float = LINGER) -> None:
-    """Keep the session open until the agents (and a plant outside), told to stop, have left (at most ``timeout`` s).
-
-    Closing at once could withdraw the coordinator's liveliness token before the Stop message has
-    reached every agent (through a router they travel different paths), and an agent would
-    then report a lost coordinator instead of a finished run. Stop is repeated every
-    ``STOP_REPEAT`` s meanwhile, in case a copy was lost (injected loss drops it too).
-    """
-    end = bus.now() + timeout
-    try:
-        while node.present() and bus.now() < end:
-            if not bus.run(until=lambda: not node.present(), timeout=min(STOP_REPEAT, end - bus.now())):
-                node.repeat_stop()
-    except KeyboardInterrupt:
-        pass
+        return PlantRoleOutcome(EXIT_INTERRUPTED, f"{who}: interrupted after {role.k} steps", role.k)
+    drops = f"; {role.rejects.counts_line()}" if role.rejects.total else ""
+    if role.stop_reason != "finished":
+        return PlantRoleOutcome(EXIT_FAILED, f"{who}: the coordinator stopped the run ({role.stop_reason}){drops}",
+                                role.k)
+    return PlantRoleOutcome(EXIT_OK, f"{who}: finished after {role.k} steps{drops}", role.k)

@@ -11,8 +11,8 @@ import numpy as np
 
 from dmpc.bus import keys
 from dmpc.bus.messages import State
+from dmpc.core.system import CoupledSystem
 from dmpc.security.rejects import MAX_MAGNITUDE, STALE
-from dmpc.system import CoupledSystem
 
 
 class StateInbox:

@@ -21,6 +21,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def in_ci() -> bool:
+    """True under ``CI=true`` (or 1, yes): tests that need a tool then fail rather than skip without it."""
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
 def pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -73,6 +78,33 @@ def simulate_paper(out: Path, *args: str) -> Path:
     res = run_cli("simulate", "scenarios/paper.yaml", "--out", str(out), "--quiet", *args)
     assert res.returncode == 0, res.stderr
     return out
+
+
+def handles_sigterm(pid: int) -> bool:
+    """True once process ``pid`` catches SIGTERM (its SigCgt mask in /proc): dmpc's first line ran."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            caught = next(line.split()[1] for line in fh if line.startswith("SigCgt:"))
+    except (OSError, StopIteration):
+        return False
+    return bool(int(caught, 16) >> (signal.SIGTERM - 1) & 1)
+
+
+def session_members(sid: int) -> list[str]:
+    """The live (not zombie) processes of session ``sid``: ``pid name`` each."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                stat = fh.read()
+        except OSError:
+            continue
+        name, rest = stat[stat.index("(") + 1:stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
+        if rest[0] != "Z" and int(rest[3]) == sid:
+            found.append(f"{entry} {name}")
+    return found
 
 
 def wait_for(predicate, timeout: float, interval: float = 0.05) -> bool:

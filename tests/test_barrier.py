@@ -1,4 +1,4 @@
-"""The Coordinator state machine (plant/barrier.py) without any bus.
+"""The Coordinator state machine (coordinator/barrier.py) without any bus.
 
 Plans are PlanMessage objects built here from AgentController solves (dmpc.agents.controller),
 driven by the coordinator's own Release actions. Expected inputs, fallbacks and plant updates
@@ -13,13 +13,22 @@ import pytest
 
 from dmpc.agents.controller import AgentController
 from dmpc.bus.messages import PlanMessage
-from dmpc.plant.barrier import ApplyInputs, Coordinator, RoundOpened, RunFinished, SendRelease, StepCompleted, input_excess
+from dmpc.coordinator.barrier import (
+    ApplyInputs,
+    Coordinator,
+    PlanRefused,
+    RoundOpened,
+    RunFinished,
+    SendRelease,
+    StepCompleted,
+    input_excess,
+)
+from dmpc.core.steps import ProtocolOptions
+from dmpc.core.system import LinearSet
+from dmpc.core.trajectories import Plan
 from dmpc.plant.dynamics import Plant
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
-from dmpc.steps import ProtocolOptions
-from dmpc.system import LinearSet
-from dmpc.trajectories import Plan
+from dmpc.setup import prepare
 from tests.helpers.reference import A_II, B_II, K_PAPER, PAPER, U_BAR, block_diag, chain_matrices
 
 RUN = "test-run"
@@ -45,7 +54,7 @@ def agent_view(release, system, name: str) -> SimpleNamespace:
     i = NAMES.index(name)
     others = [NAMES[j] for j in system.neighbours[i] if j != i]
     return SimpleNamespace(
-        k=release.k, iteration=release.iteration,
+        k=release.k, round=release.round,
         states={NAMES[j]: release.x[system.xs(j)] for j in system.neighbours[i]},
         alpha=release.centres[system.xs(i)], beta=float(release.sizes[i]),
         assumed={o: release.reference(NAMES.index(o)) for o in others},
@@ -77,7 +86,7 @@ class Driver:
             elif isinstance(action, RunFinished):
                 self.finished = True
             else:
-                assert isinstance(action, RoundOpened)
+                assert isinstance(action, (RoundOpened, PlanRefused))  # a host only logs a refusal
         return actions
 
     def message(self, name: str, alpha=None, beta=None, **changes) -> PlanMessage:
@@ -96,14 +105,14 @@ class Driver:
         states = {NAMES.index(n): x for n, x in rel.states.items()}
         sol = self.controllers[i].solve(rel.k, states, rel.alpha if alpha is None else alpha,
                                         rel.beta if beta is None else beta, plans)
-        fields = dict(run=RUN, k=rel.k, iteration=rel.iteration, sender=name, status=sol.status.value, z=sol.z,
+        fields = dict(run=RUN, k=rel.k, round=rel.round, sender=name, status=sol.status.value, z=sol.z,
                       v=sol.v, cost=sol.cost, solve_time=sol.solve_time, qp_iterations=int(sol.iterations))
         fields.update(changes)
         return PlanMessage(**fields)
 
     def deliver(self, msg: PlanMessage) -> list:
         if msg.status in ("solved", "solved_inaccurate"):
-            self.archive[(msg.sender, msg.k, msg.iteration)] = Plan(msg.k, msg.iteration, msg.z, msg.v)
+            self.archive[(msg.sender, msg.k, msg.round)] = Plan(msg.k, msg.round, msg.z, msg.v)
         return self.handle(self.offer(msg))
 
     def offer(self, msg: PlanMessage) -> list:
@@ -125,9 +134,9 @@ class Driver:
         """Answer rounds until the current step completes; returns its record."""
         done = len(self.records)
         while len(self.records) == done:
-            before = (self.coord.k, self.coord.iteration)
+            before = (self.coord.k, self.coord.round)
             self.round(names)
-            assert (self.coord.k, self.coord.iteration) != before or len(self.records) > done, "round did not close"
+            assert (self.coord.k, self.coord.round) != before or len(self.records) > done, "round did not close"
         return self.records[-1]
 
 
@@ -165,7 +174,7 @@ def sigma(prepared, alpha) -> float:
 def test_full_first_step_reproduces_the_paper(prepared, controllers):
     d = Driver(prepared, controllers, options())
     first = d.releases["2"]
-    assert (first.k, first.iteration) == (0, 0)
+    assert (first.k, first.round) == (0, 0)
     assert set(first.states) == {"1", "2", "3"}
     np.testing.assert_array_equal(first.states["2"], [2.08, 2.2])
     assert first.assumed == {"1": None, "3": None}
@@ -184,7 +193,7 @@ def test_full_first_step_reproduces_the_paper(prepared, controllers):
     assert rec.J == pytest.approx(102.05, abs=0.05)
     # the release of step 1 carries the new state, box and references to the final k = 0 plans
     rel = d.releases["2"]
-    assert (rel.k, rel.iteration) == (1, 0)
+    assert (rel.k, rel.round) == (1, 0)
     np.testing.assert_array_equal(rel.states["2"], part(rec.x_next, 1))
     np.testing.assert_array_equal(rel.alpha, part(rec.alpha_next, 1))
     assert rel.beta == rec.beta_next
@@ -192,7 +201,7 @@ def test_full_first_step_reproduces_the_paper(prepared, controllers):
 
 
 def test_single_round_step_records(prepared, controllers):
-    d = Driver(prepared, controllers, options(initial_iterations=1))
+    d = Driver(prepared, controllers, options(initial_rounds=1))
     msgs = [d.message(n) for n in NAMES]
     for m in msgs[:-1]:
         assert d.deliver(m) == []  # the round waits for everybody
@@ -221,7 +230,7 @@ def test_run_finishes_after_the_last_step(prepared, controllers):
 def at_step_1(prepared, controllers):
     d = Driver(prepared, controllers, options())
     d.step()
-    assert (d.coord.k, d.coord.iteration) == (1, 0)
+    assert (d.coord.k, d.coord.round) == (1, 0)
     return d
 
 
@@ -243,7 +252,7 @@ def test_duplicate_plan_is_ignored(at_step_1):
 @pytest.mark.parametrize("k_shift, it, reason", [(1, 0, "future"), (0, 1, "future"), (-1, 0, "stale")])
 def test_wrong_step_or_round_is_rejected(at_step_1, k_shift, it, reason):
     d = at_step_1
-    m = d.message("1", k=1 + k_shift, iteration=it)
+    m = d.message("1", k=1 + k_shift, round=it)
     assert d.deliver(m) == []
     assert d.rejected == {reason: 1}
     d.round()  # the round is unaffected and completes with the proper plans
@@ -392,6 +401,21 @@ def test_plan_with_an_input_outside_U_i_is_refused_and_its_fallback_applied(at_s
     assert d.records[-1].fallback == [False] * 4 and d.coord.inputs_refused == {"2": 1}
 
 
+def test_a_refused_plan_is_an_action_that_names_the_agent_the_round_and_the_excess(at_step_1):
+    """The host learns of a refusal from the coordinator's actions, first of them, once per plan."""
+    d = at_step_1
+    v = d.message("3").v.copy()
+    v[2, 0] = U_BAR + 0.25
+    actions = d.offer(d.message("3", v=v))
+    assert actions == [PlanRefused("3", 1, 0, pytest.approx(0.25 - 1e-6 * U_BAR), 1)]
+    d.round(["1", "2", "4"])
+    v = d.message("3").v.copy()
+    v[0, 0] = -U_BAR - 1.0
+    actions = d.offer(d.message("3", v=v))
+    assert isinstance(actions[0], PlanRefused) and actions[0].count == 2 and actions[0].k == 2
+    assert not any(isinstance(a, PlanRefused) for a in d.offer(d.message("1")))
+
+
 @pytest.mark.parametrize("excess, refused", [(0.5e-6 * U_BAR, False), (2e-6 * U_BAR, True), (-1e-3, False)])
 def test_input_tolerance_is_relative_to_the_bound(at_step_1, excess, refused):
     d = at_step_1
@@ -436,7 +460,7 @@ class OutsideDriver(Driver):
 def test_a_round_closed_while_the_plant_outside_measures_is_not_closed_again(prepared, controllers):
     """Between ApplyInputs and the state, a deadline of the closed round or a lost agent must not
     decide the step again; the record (built after the state) is the simulated plant's."""
-    options = ProtocolOptions(steps=3, initial_iterations=1)
+    options = ProtocolOptions(steps=3, initial_rounds=1)
     simulated = Driver(prepared, controllers, options)
     simulated.round()
     outside = OutsideDriver(prepared, controllers, options)

@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import pytest
 
-from dmpc.bench import floor_spec
-from dmpc.bench_floor import FloorSpec, measure
+from dmpc.bench.floor import FloorSpec, measure
+from dmpc.bench.measures import floor_spec
 from dmpc.bus.codec import encode
 from dmpc.bus.messages import Release
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 
 
 def test_floor_spec_mirrors_the_run():
@@ -18,7 +18,7 @@ def test_floor_spec_mirrors_the_run():
     system = prepare(load_scenario("scenarios/paper.yaml")).system
     import numpy as np
 
-    release = Release(run="paper-0123abcd", k=50, iteration=0, x=np.ones(system.n), centres=np.ones(system.n),
+    release = Release(run="paper-0123abcd", k=50, round=0, x=np.ones(system.n), centres=np.ones(system.n),
                       sizes=np.ones(4), assumed=np.full((4, 2), 50))
     assert spec.release_bytes == len(encode(release))
     assert 300 < spec.plan_bytes < 1000

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import json
 
-from dmpc.bench import calibration_ms
-from dmpc.bench_results import markdown, targets
+from dmpc.bench.common import calibration_ms
+from dmpc.bench.results import markdown, targets
 
 
 def _results() -> dict:
@@ -53,7 +53,7 @@ def test_a_run_that_did_not_complete_is_a_row_with_its_reason_on_one_line():
 
 
 def test_headline_has_the_floor_and_the_ratios():
-    from dmpc.bench_results import headline
+    from dmpc.bench.results import headline
 
     h = headline(_results())
     assert (h["floor_step_ms_p50_m4"], h["floor_step_ms_p99_m4"]) == (2.24, 2.84)
@@ -82,7 +82,7 @@ def test_targets_say_which_are_met_from_the_figures():
 
 def test_alternated_sets_give_medians_and_the_median_of_each_sets_ratio(monkeypatch, tmp_path):
     """Floor and run alternate; a set whose run failed is left out; the ratios are per set."""
-    from dmpc import bench
+    from dmpc.bench import measures as bench
 
     floors = iter([(1.0, 2.0), (0.5, 1.0), (1.0, 1.0), (2.0, 4.0)])
     runs = iter([(3.0, 4.0), (2.0, 5.0), None, (4.0, 6.0)])
@@ -105,3 +105,70 @@ def test_alternated_sets_give_medians_and_the_median_of_each_sets_ratio(monkeypa
     assert result["over_floor_p99"] == 2.0  # ratios 2, 5, 1.5
     text = markdown({**_results(), "runtime": [dict(_results()["runtime"][0], sets=result["sets"])]}, "dmpc bench")
     assert "alternated 3 times" in text and "1.00 / 2.00 then 3.00 / 4.00" in text
+
+
+def _full_results() -> dict:
+    """The figures of a full run: M = 128 one process per agent, M = 1024 designed and run hosted."""
+    results = _results()
+    m128 = dict(results["runtime"][0], M=128, topology="star", startup_s=6.2)
+    hosted = {"M": 1024, "processes": 8, "agents_per_process": 128, "topology": "mesh", "steps": 10, "design_s": 40.1,
+              "completed": True, "startup_s": 14.0, "step_ms_p50": 215.0, "step_ms_p99": 260.0, "rss_mb_total": 1800.0,
+              "rss_mb_per_process": 184.0, "closed_loop_cost": 32151.9, "central_cost": 31790.5,
+              "cost_ratio": 1.0114, "central_solve_s_p50": 2.94}
+    results["machine"] = dict(results["machine"], load_average=3.2, load_average_end=1.5)
+    results.update(runtime=[results["runtime"][0], m128], scale=[hosted], date="2026-11-25 10:00 UTC",
+                   design=results["design"] + [{"M": 1024, "lmi_s": 30.0, "terminal_set_s": 12.0, "omega_rows": 6144,
+                                                "t_star": 2, "design_s": 52.5}])
+    from dmpc.bench.results import headline
+
+    results["headline"] = headline(results)
+    return results
+
+
+def test_the_targets_of_start_up_and_of_a_thousand_subsystems():
+    rows = {target: (measured, met) for target, measured, met in targets(_full_results())}
+    assert rows["M = 128, one process per agent: start-up <= 30 s"] == ("6.2 s", "yes")
+    assert rows["M = 1024 end to end, agents hosted many to a process: completes"] == (
+        "10 steps, 8 processes of 128 agents", "yes")
+    assert rows["M = 1024 design <= 3 min"] == ("52.5 s", "yes")
+    quick = {target: (measured, met) for target, measured, met in targets(_results())}
+    assert quick["M = 1024 design <= 3 min"] == ("not run", "-")
+    assert quick["M = 128, one process per agent: start-up <= 30 s"] == ("not run", "-")
+    assert quick["M = 1024 end to end, agents hosted many to a process: completes"] == ("not run", "-")
+
+
+def test_the_report_opens_with_its_date_headline_and_targets_and_has_the_hosted_table():
+    text = markdown(_full_results(), "dmpc bench --write benchmarks/RESULTS.md")
+    assert text.startswith("# Benchmarks\n\nMeasured 2026-11-25 10:00 UTC on x86_64")
+    assert "Load average (1 min): 3.2 at the start and 1.5 at the end, on 2 cores" in text
+    order = [text.index(h) for h in ("## Headline", "## Targets", "## Local QP", "## Multi-process lockstep",
+                                     "## Agents hosted many to a process")]
+    assert order == sorted(order)
+    assert "- The paper's example (M = 4) over Zenoh, one process per agent: step median 4.48 ms, p99 8.52 ms " \
+           "(2.00x and 3.00x a bare Zenoh loop's)." in text
+    assert "- M = 128, one process per agent: start-up 6.2 s." in text
+    assert "- M = 1024: design 52 s, step median 215 ms with agents hosted many to a process." in text
+    assert "| 1024 | 8 | 128 | mesh | 40.1 | 14.0 | 215.0 | 260.0 | 1800 | 184 |" in text
+    headline = json.loads(text.split("```json")[1].split("```")[0])
+    assert headline["max_agents_run"] == 1024 and headline["startup_s_m128"] == 6.2
+
+
+def test_regenerating_replaces_the_figures_and_keeps_the_dated_history_at_the_end(tmp_path, monkeypatch):
+    from dmpc.bench import results as bench_results
+    from dmpc.bench.results import HISTORY_HEADING, write_report
+
+    monkeypatch.setattr(bench_results, "plot", lambda results, folder: [])
+    report = tmp_path / "RESULTS.md"
+    history = f"{HISTORY_HEADING}\n\n### Soak (measured 2026-11-20)\n\n100,000 steps, RSS flat.\n"
+    report.write_text("# Benchmarks\n\nSpeed of this machine at the time: 64.2 ms\n\n| M = 4 | 3.66 ms |\n\n"
+                      + history)
+    write_report(_full_results(), report, "dmpc bench --write benchmarks/RESULTS.md")
+    write_report(_full_results(), report, "dmpc bench --write benchmarks/RESULTS.md")
+    text = report.read_text()
+    assert "64.2 ms" not in text and "3.66 ms" not in text
+    assert text.count(HISTORY_HEADING) == 1 and text.endswith(history)
+    assert text.index("## Targets") < text.index(HISTORY_HEADING)
+    assert json.loads(report.with_suffix(".json").read_text())["headline"]["startup_s_m128"] == 6.2
+    fresh = tmp_path / "new.md"
+    write_report(_full_results(), fresh, "dmpc bench")
+    assert HISTORY_HEADING not in fresh.read_text()

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from dmpc.bench_scale import HEADER, markdown_row, scale_row
+from dmpc.bench.scale import HEADER, markdown_row, scale_row
 from tests.e2e_helpers import ROOT
 
 pytestmark = pytest.mark.e2e

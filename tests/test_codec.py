@@ -30,7 +30,7 @@ def releases(draw):
     N = draw(st.integers(1, 4))
     provided = {a: (draw(arrays(np.float64, (N + 1, 2), elements=finite)), draw(arrays(np.float64, (N, 1), elements=finite)))
                 for a in draw(st.lists(st.sampled_from(agents), max_size=2, unique=True))}
-    return Release(run=draw(names), k=draw(counts), iteration=draw(counts), x=draw(arrays(np.float64, (n,), elements=finite)),
+    return Release(run=draw(names), k=draw(counts), round=draw(counts), x=draw(arrays(np.float64, (n,), elements=finite)),
                    centres=draw(arrays(np.float64, (n,), elements=finite)),
                    sizes=draw(arrays(np.float64, (len(agents),), elements=st.floats(min_value=0, max_value=1e6))),
                    assumed=np.array([draw(refs) for _ in agents], dtype=np.int64).reshape(len(agents), 2),
@@ -42,7 +42,7 @@ def plans(draw):
     N = draw(st.integers(1, 12))
     n = draw(st.integers(1, 4))
     m = draw(st.integers(1, 3))
-    return PlanMessage(run=draw(names), k=draw(counts), iteration=draw(counts), sender=draw(names), status="solved",
+    return PlanMessage(run=draw(names), k=draw(counts), round=draw(counts), sender=draw(names), status="solved",
                        z=draw(arrays(np.float64, (N + 1, n), elements=finite)),
                        v=draw(arrays(np.float64, (N, m), elements=finite)),
                        cost=draw(finite), solve_time=draw(st.floats(0, 10)), qp_iterations=draw(counts),
@@ -73,7 +73,7 @@ def test_round_trip(msg):
     (lambda b: b.update(skipped=[""]), "skipped"),
 ])
 def test_release_defects_named(mutate, match):
-    msg = Release(run="r", k=1, iteration=0, x=np.zeros(3), centres=np.zeros(3), sizes=np.ones(2),
+    msg = Release(run="r", k=1, round=0, x=np.zeros(3), centres=np.zeros(3), sizes=np.ones(2),
                   assumed=np.array([[0, 0], [-1, -1]]))
     body = msgpack.unpackb(encode(msg), raw=False)
     mutate(body)
@@ -82,19 +82,19 @@ def test_release_defects_named(mutate, match):
 
 
 def test_release_reference():
-    msg = Release(run="r", k=4, iteration=0, x=np.zeros(2), centres=np.zeros(2), sizes=np.ones(2),
+    msg = Release(run="r", k=4, round=0, x=np.zeros(2), centres=np.zeros(2), sizes=np.ones(2),
                   assumed=np.array([[3, 1], [-1, -1]]))
     assert decode(encode(msg)).reference(0) == (3, 1) and decode(encode(msg)).reference(1) is None
 
 
 def test_infeasible_plan_carries_nan():
-    msg = PlanMessage(run="r", k=1, iteration=0, sender="1", status="infeasible", z=np.full((3, 2), np.nan),
+    msg = PlanMessage(run="r", k=1, round=0, sender="1", status="infeasible", z=np.full((3, 2), np.nan),
                       v=np.full((2, 1), np.nan), cost=math.nan, solve_time=0.0, qp_iterations=7)
     assert messages_equal(decode(encode(msg)), msg)
 
 
 def test_solved_plan_with_nan_is_rejected():
-    msg = PlanMessage(run="r", k=1, iteration=0, sender="1", status="solved", z=np.full((3, 2), np.nan),
+    msg = PlanMessage(run="r", k=1, round=0, sender="1", status="solved", z=np.full((3, 2), np.nan),
                       v=np.zeros((2, 1)), cost=1.0, solve_time=0.0, qp_iterations=7)
     with pytest.raises(DecodeError, match="non-finite"):
         decode(encode(msg))
@@ -147,7 +147,7 @@ def test_truncated_payload_rejected(msg, cut):
     (lambda b: b.update(sender=""), "sender"),
 ])
 def test_specific_defects_named(mutate, match):
-    msg = PlanMessage(run="r", k=1, iteration=0, sender="1", status="solved", z=np.zeros((2, 2)),
+    msg = PlanMessage(run="r", k=1, round=0, sender="1", status="solved", z=np.zeros((2, 2)),
                       v=np.zeros((1, 1)), cost=1.0, solve_time=0.0, qp_iterations=7)
     body = msgpack.unpackb(encode(msg), raw=False)
     mutate(body)
@@ -189,7 +189,7 @@ def test_non_finite_values_are_found_whatever_the_other_values(z, bad, at, statu
     z = z.copy()
     if bad is not None:
         z.flat[at] = bad
-    msg = PlanMessage(run="r", k=1, iteration=0, sender="1", status=status, z=z, v=np.zeros((2, 1)), cost=1.0,
+    msg = PlanMessage(run="r", k=1, round=0, sender="1", status=status, z=z, v=np.zeros((2, 1)), cost=1.0,
                       solve_time=0.0, qp_iterations=3)
     refused = bad is not None and (status == "solved" or math.isinf(bad))
     if refused:

@@ -9,8 +9,8 @@ import pytest
 from dmpc.evaluation.compare import steps_to
 from dmpc.evaluation.roa import region_of_attraction, roa_markdown, sample_states
 from dmpc.scenario import load_scenario
-from tests.helpers.reference import PAPER
 from tests.helpers.cli import call, one_error_line
+from tests.helpers.reference import PAPER
 
 ENTRY_KEYS = {"run_dir", "closed_loop_cost", "J", "S", "steps_to_1e-3", "feasible", "fallbacks", "solve_time_median_s",
               "verdict", "failures"}
@@ -33,6 +33,31 @@ def test_compare_writes_run_folders_and_comparison_json(tmp_path, monkeypatch, c
         assert entry["feasible"] and entry["fallbacks"] == 0
         assert entry["steps_to_1e-3"] is None  # not within 6 steps
     assert "tv-box / centralized" in stdout and "fixed-box" in stdout
+
+
+def test_compare_exits_3_naming_the_methods_whose_verdict_failed(tmp_path, monkeypatch, capsys):
+    # at N = 3 the paper's start is infeasible for the boxes at k = 0, not for the centralised QP on X^f
+    out = tmp_path / "cmp"
+    code, stdout, err = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(out), "--steps", "4",
+                             "--methods", "tv-box", "centralized", "--set", "horizon=3", "--set",
+                             "design.check_start=false", "--quiet")
+    assert code == 3
+    data = json.loads((out / "comparison.json").read_text())["methods"]
+    assert data["tv-box"]["verdict"] == "failed" and data["centralized"]["verdict"] == "ok"
+    line = one_error_line(err)
+    assert line.startswith("error: verdict failed for tv-box (") and "centralized" not in line
+    assert "failed (infeasible-start)" in stdout
+
+
+def test_compare_written_to_files_has_no_blank_lines(tmp_path, monkeypatch, capsys):
+    """Progress bars are for a terminal: in a file they would leave one blank line per method."""
+    code, stdout, err = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(tmp_path / "c"), "--steps", "2",
+                             "--methods", "tv-box", "fixed-box", "centralized")
+    assert code == 0
+    assert err == ""
+    lines = stdout.splitlines()
+    assert lines[0] == "methods on 'paper'" and len(lines) > 6
+    assert sum(not line.strip() for line in lines) <= 2  # the table's own top and bottom rule
 
 
 def test_steps_to_tolerance():

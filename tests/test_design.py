@@ -11,13 +11,27 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from dmpc.design import DesignError
-from dmpc.design.tubes import RevisionBound, robust_tightening
-from dmpc.runtime.setup import prepare
+from dmpc.offline import DesignError
+from dmpc.offline.tubes import RevisionBound, robust_tightening
 from dmpc.scenario import build_system, load_scenario
+from dmpc.setup import prepare
 from tests.helpers.reference import (
-    A_II, A_IJ, B_II, CHAIN, K_PAPER, P_PAPER, PAPER, PAPER_LMI, Q_I, R_I, U_BAR, block_diag, chain_matrices,
-    cube_vertices, lp_max, sigma_lp,
+    A_II,
+    A_IJ,
+    B_II,
+    CHAIN,
+    K_PAPER,
+    P_PAPER,
+    PAPER,
+    PAPER_LMI,
+    Q_I,
+    R_I,
+    U_BAR,
+    block_diag,
+    chain_matrices,
+    cube_vertices,
+    lp_max,
+    sigma_lp,
 )
 
 N_SUBSYSTEMS = 4

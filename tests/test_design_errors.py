@@ -16,13 +16,13 @@ import yaml
 from rich.console import Console
 from scipy.linalg import solve_discrete_lyapunov
 
-from dmpc.design import DesignError, gains
-from dmpc.design.gains import lmi_gains, lqr_gains, verify_gains
-from dmpc.design.stabilisable import stuck_modes
+from dmpc.core.system import CoupledSystem, LinearSet, Subsystem
+from dmpc.offline import DesignError, gains
+from dmpc.offline.gains import lmi_gains, lqr_gains, verify_gains
+from dmpc.offline.stabilisable import stuck_modes
 from dmpc.records.tables import design_report
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import build_system, load_scenario
-from dmpc.system import CoupledSystem, LinearSet, Subsystem
+from dmpc.setup import prepare
 from tests.helpers.cli import call
 from tests.helpers.reference import A_II, B_II, PAPER, PAPER_LMI, Q_I, R_I, block_diag, chain_matrices
 
@@ -144,7 +144,7 @@ def test_a_feasible_pair_designs(tmp_path):
 # ---------------------------------------------------------------- solver warnings
 
 def test_solver_warnings_go_to_the_design_logger(monkeypatch, caplog):
-    from dmpc.design import lmi_conic
+    from dmpc.offline import lmi_conic
 
     original = lmi_conic.solve_lmi
 
@@ -154,12 +154,12 @@ def test_solver_warnings_go_to_the_design_logger(monkeypatch, caplog):
 
     monkeypatch.setattr(lmi_conic, "solve_lmi", warning_solve)
     system = build_system(load_scenario(PAPER_LMI))
-    with warnings.catch_warnings(record=True) as escaped, caplog.at_level(logging.INFO, logger="dmpc.design"):
+    with warnings.catch_warnings(record=True) as escaped, caplog.at_level(logging.INFO, logger="dmpc.offline"):
         warnings.simplefilter("always")
         g = lmi_gains(system)
     assert g.rho < 1.0
     assert [str(w.message) for w in escaped] == []
-    logged = [r for r in caplog.records if r.name == "dmpc.design" and "injected" in r.getMessage()]
+    logged = [r for r in caplog.records if r.name == "dmpc.offline" and "injected" in r.getMessage()]
     assert logged and all(r.levelno == logging.INFO for r in logged)
 
 

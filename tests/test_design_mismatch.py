@@ -13,13 +13,13 @@ from dmpc.bus import keys
 from dmpc.bus.codec import MAX_REASON, decode, encode
 from dmpc.bus.memory import MemoryBus
 from dmpc.bus.messages import Ready, design_claim
-from dmpc.plant.barrier import Coordinator
+from dmpc.coordinator.barrier import Coordinator
+from dmpc.coordinator.node import CoordinatorNode
+from dmpc.coordinator.process import run_coordinator
 from dmpc.plant.dynamics import Plant
-from dmpc.plant.node import PlantNode
-from dmpc.plant.process import run_plant
 from dmpc.records.session import RunRecorder
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from tests.helpers.reference import PAPER
 
 RUN = "mismatch"
@@ -53,7 +53,7 @@ def test_plant_and_agent_name_the_differing_design(tmp_path, paper, paper_n12):
     bus = MemoryBus()
     agents = [agent_node(bus, paper, i) for i in range(3)] + [agent_node(bus, paper_n12, 3)]
     with RunRecorder(tmp_path / "run", paper, show_progress=False) as recorder:
-        outcome = run_plant(paper, recorder, bus, RUN, startup_timeout=5.0)
+        outcome = run_coordinator(paper, recorder, bus, RUN, startup_timeout=5.0)
     assert outcome.code == 1
     assert outcome.message.startswith("plant: a design differs from this plant's: ")
     assert f"agent 4 uses design {paper_n12.digest} (scenario 'paper', horizon 12)" in outcome.message
@@ -74,7 +74,7 @@ def test_a_forged_ready_with_another_design_does_not_stop_the_run(paper):
     """Anyone on the bus can send one: the plant counts it and starts once the real agents are ready."""
     bus = MemoryBus()
     coordinator = Coordinator(paper.system, paper.design, Plant(paper.system), paper.protocol, RUN)
-    plant = PlantNode(bus, coordinator, paper.digest, lambda record: None, scenario=paper.name)
+    plant = CoordinatorNode(bus, coordinator, paper.digest, lambda record: None, scenario=paper.name)
     plant.announce()
     forged = Ready(run=RUN, sender="2", design_digest="0123456789abcdef", scenario="x\x1b[2J", horizon=3)
     bus.publish(keys.ready(RUN, "2"), encode(forged))
@@ -94,7 +94,7 @@ def test_a_forged_ready_with_another_design_does_not_stop_the_run(paper):
 def test_several_differing_designs_are_bounded(paper):
     bus = MemoryBus()
     coordinator = Coordinator(paper.system, paper.design, Plant(paper.system), paper.protocol, RUN)
-    plant = PlantNode(bus, coordinator, paper.digest, lambda record: None)
+    plant = CoordinatorNode(bus, coordinator, paper.digest, lambda record: None)
     for name in paper.names:
         plant.mismatched[name] = Ready(run=RUN, sender=name, design_digest="f" * 64, scenario="s" * 64, horizon=99)
     text = plant.design_mismatch(paper.names)

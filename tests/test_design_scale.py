@@ -1,8 +1,8 @@
 """The offline design at scale: the same terminal set, sigma and gains as the plain methods give.
 
-- X^f with redundancy decided on each row's neighbourhood (dmpc.design.redundancy) equals X^f
+- X^f with redundancy decided on each row's neighbourhood (dmpc.offline.redundancy) equals X^f
   from one LP over the whole set per test, row for row;
-- LMI (11) built block by block for Clarabel (dmpc.design.lmi_conic) has the optimum of the
+- LMI (11) built block by block for Clarabel (dmpc.offline.lmi_conic) has the optimum of the
   cvxpy formulation;
 - the spectral radius from ARPACK (large systems) equals the one from all eigenvalues.
 """
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from dmpc.design.gains import CLARABEL_SETTINGS, DENSE_EIGENVALUES, _lmi_problem, _solve_quietly, spectral_radius
-from dmpc.design.lmi_conic import solve_lmi
-from dmpc.design.redundancy import SparseRows
-from dmpc.design.terminal_set import maximal_admissible_set
+from dmpc.offline.gains import CLARABEL_SETTINGS, DENSE_EIGENVALUES, _lmi_problem, _solve_quietly, spectral_radius
+from dmpc.offline.lmi_conic import solve_lmi
+from dmpc.offline.redundancy import SparseRows
+from dmpc.offline.terminal_set import maximal_admissible_set
 from dmpc.scenario import build_system, load_scenario
 from tests.helpers.reference import K_PAPER
 
@@ -32,7 +32,7 @@ def test_local_redundancy_gives_the_plain_terminal_set(M, gains):
     if gains == "paper":
         K = [K_PAPER[3]] * M  # some of its rows are redundant: the removal pass drops them
     else:
-        from dmpc.design.gains import lmi_gains
+        from dmpc.offline.gains import lmi_gains
         K = lmi_gains(system).K
     local = maximal_admissible_set(system, K, local=True)
     plain = maximal_admissible_set(system, K, local=False)

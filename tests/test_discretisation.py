@@ -9,7 +9,7 @@ from scipy.linalg import expm
 from scipy.signal import cont2discrete
 
 import dmpc
-from dmpc.discretisation import discretise, fill_in, local_zoh
+from dmpc.core.discretisation import discretise, fill_in, local_zoh
 from dmpc.scenario import ScenarioError, build_system, discrete_model
 
 ROOT = Path(__file__).resolve().parents[1]

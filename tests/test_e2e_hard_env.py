@@ -122,8 +122,8 @@ def test_a_port_taken_before_the_plant_binds_it_is_retried(tmp_path, monkeypatch
     import socket
 
     from dmpc.runtime import launcher
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     blocker = socket.socket()
     blocker.bind(("127.0.0.1", 0))
@@ -145,7 +145,7 @@ def test_a_port_taken_before_the_plant_binds_it_is_retried(tmp_path, monkeypatch
 def test_a_plant_that_cannot_listen_exits_with_the_address_in_use_code(tmp_path):
     import socket
 
-    from dmpc.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED
+    from dmpc.terminal.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED
 
     with socket.socket() as blocker:
         blocker.bind(("127.0.0.1", 0))

@@ -15,6 +15,9 @@ from pathlib import Path
 
 import pytest
 
+from dmpc.bus import keys
+from dmpc.bus.session import session_config
+from dmpc.bus.zenoh_bus import ZenohBus
 from tests.e2e_helpers import ROOT, Processes, free_port, max_abs_diff, step_lines, wait_for
 
 EXAMPLE = ROOT / "examples" / "outside_plant.py"
@@ -110,9 +113,22 @@ def test_one_sensor_process_per_subsystem_gives_the_trajectory_of_simulate(procs
     assert run.summary()["rejected"] == {}
 
 
+def agents_ready(run: Run, names=("1", "2", "3", "4"), timeout: float = 60) -> None:
+    """Return once every agent of ``run`` has said Ready on the run's bus (each repeats it every
+    0.5 s until the first release), watched from a session of this process."""
+    seen: set[str] = set()
+    # the session retries until the coordinator listens
+    bus = ZenohBus(session_config(connect=[run.endpoint]), open_timeout=timeout)
+    try:
+        bus.subscribe(keys.ready(run.run_id, "*"), lambda key, payload: seen.add(key.rsplit("/", 1)[-1]))
+        assert bus.run(until=lambda: seen >= set(names), timeout=timeout), f"agents ready: {sorted(seen)}"
+    finally:
+        bus.close()
+
+
 def test_a_late_plant_is_waited_for(procs, tmp_path, paper_simulated):
     run = Run(procs, tmp_path)
-    time.sleep(6)  # the agents are ready long before the plant shows up
+    agents_ready(run)  # the plant shows up only once the agents are ready and waiting for it
     assert run.run.poll() is None, run.log()
     plant = run.plant()
     assert run.wait() == 0, run.log()[-3000:]

@@ -10,8 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.e2e_helpers import (DMPC, ROOT, free_port, max_abs_diff, pid_alive, run_cli, step_lines,
-                               wait_for)
+from tests.e2e_helpers import DMPC, ROOT, free_port, max_abs_diff, pid_alive, run_cli, step_lines, wait_for
 
 pytestmark = pytest.mark.e2e
 
@@ -157,9 +156,9 @@ def test_peers_only(procs, tmp_path, paper_simulated):
 
 
 def test_plant_and_agents_from_a_run_bundle(procs, tmp_path, paper_simulated):
-    from dmpc.run_bundle import write_bundle
-    from dmpc.runtime.setup import prepare
+    from dmpc.prepared.bundle import write_bundle
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     bundle = tmp_path / "run.json"
     write_bundle(prepare(load_scenario("scenarios/paper.yaml")), bundle)
@@ -205,8 +204,8 @@ def test_agent_with_another_design_is_named_by_plant_and_agent(procs, tmp_path):
     """Agent 4 started with ``--set horizon=12`` against a plant of the scenario as it is: the
     plant fails at its start-up timeout naming agent 4 and both designs, and agent 4 says that
     its design differs from the coordinator's."""
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     scenario = ROOT / "scenarios" / "paper.yaml"
     plant_digest = prepare(load_scenario(scenario)).digest

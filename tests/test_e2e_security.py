@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 
 from tests.e2e_helpers import ROOT, Processes, free_port, max_abs_diff, pid_alive, run_cli
+from tests.helpers.tls import ca_key_files
 
 pytestmark = pytest.mark.e2e
 
@@ -40,8 +41,8 @@ OPEN_TIMEOUT = 2.0  # seconds an unauthenticated probe keeps trying before it gi
 def paper(tmp_path_factory):
     """The reference run (``dmpc simulate``) and a run folder's inputs for hand-started processes."""
     from dmpc.runtime.launcher import prepare_run_folder
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     base = tmp_path_factory.mktemp("paper")
     res = run_cli("simulate", SCENARIO, "--out", str(base / "sim"), "--quiet")
@@ -54,7 +55,7 @@ def paper(tmp_path_factory):
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory, paper):
     """A certificate directory for the paper's roles (any run id), and agent-1 from another CA."""
-    from dmpc.run_bundle import load_bundle
+    from dmpc.prepared.bundle import load_bundle
     from dmpc.security.certs import make_certificates, make_run_security
 
     base = tmp_path_factory.mktemp("certs")
@@ -311,6 +312,8 @@ def check_secure_records(secure: Path, plain: Path) -> None:
         set(json.loads((plain / "summary.json").read_text())) - launcher_only
     assert {p.name for p in tls.iterdir()} >= {"ca.pem", "plant.pem", "plant.key", "agent-4.pem", "acl.json"}
     assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in tls.glob("*.key"))
+    assert stat.S_IMODE(tls.stat().st_mode) == 0o700
+    assert ca_key_files(secure, tls / "ca.pem") == []  # nothing in the run folder can mint a role
     run_id = json.loads((secure / "logs" / "agent-1.json").read_text())["run_id"]
     acl = json.loads((tls / "acl.json").read_text())
     assert all(k.startswith(f"dmpc/{run_id}/") for rule in acl["rules"] for k in rule["key_exprs"])
@@ -429,7 +432,7 @@ class _Garbage:
     def plan(self, name: str, **change):
         from dmpc.bus.messages import PlanMessage
 
-        fields = dict(run=self.run, k=int(self.rng.integers(0, 30)), iteration=0, sender=name, status="solved",
+        fields = dict(run=self.run, k=int(self.rng.integers(0, 30)), round=0, sender=name, status="solved",
                       z=np.zeros((self.N + 1, self.n[name])), v=np.zeros((self.N, self.m[name])), cost=0.0,
                       solve_time=0.0, qp_iterations=1)
         fields.update(change)
@@ -439,7 +442,7 @@ class _Garbage:
         from dmpc.bus.messages import Release
 
         M, n = len(self.names), sum(self.n.values())
-        fields = dict(run=self.run, k=int(self.rng.integers(0, 30)), iteration=0, x=np.zeros(n), centres=np.zeros(n),
+        fields = dict(run=self.run, k=int(self.rng.integers(0, 30)), round=0, x=np.zeros(n), centres=np.zeros(n),
                       sizes=np.ones(M), assumed=np.full((M, 2), -1, dtype=np.int64))
         fields.update(change)
         return Release(**fields)
@@ -474,7 +477,7 @@ class _Garbage:
                 lambda: self.release(sender=other),
                 lambda: self.release(x=np.zeros(n + 1), centres=np.zeros(n + 1)),
                 lambda: self.release(sizes=np.ones(M + 1), assumed=np.zeros((M + 1, 2), dtype=np.int64)),
-                lambda: self.release(k=3, iteration=0, assumed=np.full((M, 2), 3, dtype=np.int64)),
+                lambda: self.release(k=3, round=0, assumed=np.full((M, 2), 3, dtype=np.int64)),
                 lambda: self.release(provided={"nobody": (np.zeros((self.N + 1, 2)), np.zeros((self.N, 1)))}),
             ])()
         elif key_kind == "ready":
@@ -497,7 +500,7 @@ def _rogue(argv: list[str]) -> int:
     from dmpc.bus.codec import DecodeError, decode, encode
     from dmpc.bus.messages import Release, Stop
     from dmpc.bus.session import open_session, session_config
-    from dmpc.run_bundle import load_bundle
+    from dmpc.prepared.bundle import load_bundle
     from dmpc.security.files import tls_files
 
     p = argparse.ArgumentParser(prog="rogue")
@@ -587,9 +590,9 @@ def _rogue(argv: list[str]) -> int:
                 sent["releases_seen"] += 1
                 if not isinstance(rel, Release):
                     continue
-                put(keys.plan(R, "3"), encode(garbage.plan("3", k=rel.k, iteration=rel.iteration,
+                put(keys.plan(R, "3"), encode(garbage.plan("3", k=rel.k, round=rel.round,
                                                              v=np.full((garbage.N, garbage.m["3"]), 2.0))), "forged")
-                put(keys.release(R), encode(garbage.release(k=rel.k, iteration=rel.iteration + 1)), "forged")
+                put(keys.release(R), encode(garbage.release(k=rel.k, round=rel.round + 1)), "forged")
                 put(keys.control(R), encode(Stop(run=R, k=rel.k, reason="finished")), "forged")
             for key in (keys.plan(R, "3"), keys.release(R), keys.ready(R, "3"), keys.control(R), keys.plan(R, "1")):
                 put(key, garbage.rng.bytes(int(garbage.rng.integers(1, 100))))

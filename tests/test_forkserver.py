@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 
 import pytest
 
@@ -70,3 +71,35 @@ def test_agents_do_not_outlive_a_server_that_dies(server):
     _read_all(out)
     with pytest.raises(ForkServerError):
         _spawn(server, "validate", "scenarios/paper.yaml")
+
+
+def test_agents_the_launcher_did_not_stop_are_stopped_when_it_closes_the_server(tmp_path):
+    """Interrupted mid-burst, the launcher never learns some agents' pids: closing the server stops them."""
+    forks = ForkServer(dict(os.environ, PYTHONUNBUFFERED="1"), tmp_path / "forkserver.log")
+    try:
+        proc, out = _spawn(forks, "agent", "scenarios/paper.yaml", "--id", "1", "--startup-timeout", "60",
+                           "--run-id", "stray")
+        assert wait_for(lambda: open(f"/proc/{proc.pid}/comm").read().strip() == "dmpc-agent", 5)
+    finally:
+        forks.close()
+    assert not pid_alive(proc.pid), "an agent outlived the closed fork server"
+    assert forks.proc.returncode == 0  # the server ended on its own, it was not killed
+    _read_all(out)
+
+
+def test_a_server_interrupted_while_it_imports_is_ended(tmp_path, monkeypatch):
+    started = []
+    real_popen = subprocess.Popen
+
+    def popen(*args, **kwargs):
+        started.append(real_popen(*args, **kwargs))
+        return started[-1]
+
+    def interrupted(self, timeout, wanted):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(subprocess, "Popen", popen)
+    monkeypatch.setattr(ForkServer, "_receive", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        ForkServer(dict(os.environ), tmp_path / "forkserver.log")
+    assert len(started) == 1 and started[0].poll() is not None, "the fork server was left running"

@@ -16,9 +16,9 @@ FUZZ = settings(max_examples=1000, deadline=None, suppress_health_check=[HealthC
 FUZZ_NESTED = settings(FUZZ, max_examples=500)  # slower to generate
 
 N, n, m = 4, 2, 1
-PLAN = PlanMessage(run="r", k=3, iteration=1, sender="2", status="solved", z=np.arange((N + 1) * n, dtype=float).reshape(N + 1, n),
+PLAN = PlanMessage(run="r", k=3, round=1, sender="2", status="solved", z=np.arange((N + 1) * n, dtype=float).reshape(N + 1, n),
                    v=np.ones((N, m)), cost=1.5, solve_time=0.001, qp_iterations=25, sent_at=12.5)
-RELEASE = Release(run="r", k=3, iteration=0, x=np.array([1.0, 1.0, 0.0, 0.0, -1.0, -1.0]),
+RELEASE = Release(run="r", k=3, round=0, x=np.array([1.0, 1.0, 0.0, 0.0, -1.0, -1.0]),
                   centres=np.array([0.0, 0.0, 0.1, 0.2, 0.0, 0.0]), sizes=np.full(3, 0.9),
                   assumed=np.array([[2, 0], [2, 0], [-1, -1]]), skipped=("3",),
                   provided={"1": (np.zeros((N + 1, n)), np.zeros((N, m)))})

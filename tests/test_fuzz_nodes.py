@@ -21,15 +21,15 @@ from dmpc.bus import keys
 from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.memory import MemoryBus
 from dmpc.bus.messages import COORDINATOR, PlanMessage, Ready, Release, Stop
-from dmpc.mpc_qp import QPStatus
-from dmpc.plant.barrier import Coordinator, StepCompleted
+from dmpc.coordinator.barrier import Coordinator, StepCompleted
+from dmpc.coordinator.node import CoordinatorNode
+from dmpc.core.mpc_qp import QPStatus
+from dmpc.core.steps import ProtocolOptions
+from dmpc.core.trajectories import Plan
 from dmpc.plant.dynamics import Plant
-from dmpc.plant.node import PlantNode
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
 from dmpc.security.rejects import UNKNOWN
-from dmpc.steps import ProtocolOptions
-from dmpc.trajectories import Plan
+from dmpc.setup import prepare
 
 RUN = "fz"
 NAMES = ["1", "2", "3", "4"]
@@ -71,16 +71,16 @@ def plan_payload(draw, prepared, name: str, k: int, it: int, fault: str, key_nam
     if store_window and fault in ("stale_k", "future_k", "stale_it", "future_it"):
         bad = False
     z, v = values(draw, (N + 1, sub.n), bad), values(draw, (N, sub.m), bad)
-    fields = dict(run=RUN, k=k, iteration=it, sender=name, status="solved", z=z, v=v, cost=1.0, solve_time=0.001,
+    fields = dict(run=RUN, k=k, round=it, sender=name, status="solved", z=z, v=v, cost=1.0, solve_time=0.001,
                   qp_iterations=10, sent_at=0.0)
     if fault == "stale_k":
         fields["k"] = max(0, k - draw(st.integers(1, 3))) if k > 0 else k + 10**6
     elif fault == "future_k":
         fields["k"] = k + draw(st.sampled_from([1, 2, 10**6, 2**53]))
     elif fault == "stale_it":
-        fields["iteration"] = it - 1 if it > 0 else it + 500
+        fields["round"] = it - 1 if it > 0 else it + 500
     elif fault == "future_it":
-        fields["iteration"] = it + draw(st.integers(1, 5000))
+        fields["round"] = it + draw(st.integers(1, 5000))
     elif fault == "wrong_run":
         fields["run"] = "other"
     elif fault == "short_z":
@@ -141,7 +141,7 @@ class GuardedPlant:
 
 def guarded_coordinator(prepared, steps: int = 6) -> tuple[Coordinator, GuardedPlant]:
     plant = GuardedPlant(Plant(prepared.system), prepared.system)
-    options = ProtocolOptions(steps=steps, iterations=2, initial_iterations=3)
+    options = ProtocolOptions(steps=steps, rounds=2, initial_rounds=3)
     return Coordinator(prepared.system, prepared.design, plant, options, RUN), plant
 
 
@@ -168,7 +168,7 @@ def test_coordinator_survives_hostile_plans(prepared, data):
             fault = data.draw(st.sampled_from([f for f in PLAN_FAULTS if f not in ("bytes", "truncated", "sender_mismatch")]))
             if fault == "again" and not coord.has_plan(name):
                 fault = "valid"
-            _, payload = plan_payload(data.draw, prepared, name, coord.k, coord.iteration, fault)
+            _, payload = plan_payload(data.draw, prepared, name, coord.k, coord.round, fault)
             try:
                 msg = decode(payload)
             except DecodeError:
@@ -178,7 +178,7 @@ def test_coordinator_survives_hostile_plans(prepared, data):
             if reason is not None:
                 reasons.add(reason)
         elif kind == "deadline":
-            k, it = coord.k + data.draw(st.integers(-1, 1)), coord.iteration + data.draw(st.integers(-1, 1))
+            k, it = coord.k + data.draw(st.integers(-1, 1)), coord.round + data.draw(st.integers(-1, 1))
             handle(coord.on_deadline(k, it))
         elif kind == "lost":
             handle(coord.on_agent_lost(data.draw(st.sampled_from(NAMES + ["9"]))))
@@ -200,7 +200,7 @@ def _unchecked_plan(payload: bytes) -> PlanMessage:
 
     b = msgpack.unpackb(payload, raw=False)
     arr = lambda d: np.frombuffer(d["data"], dtype="<f8").reshape(d["shape"])  # noqa: E731
-    return PlanMessage(run=b["run"], k=b["k"], iteration=b["iteration"], sender=b["sender"], status=b["status"],
+    return PlanMessage(run=b["run"], k=b["k"], round=b["iteration"], sender=b["sender"], status=b["status"],
                        z=arr(b["z"]), v=arr(b["v"]), cost=b["cost"], solve_time=b["solve_time"],
                        qp_iterations=b["qp_iterations"], sent_at=b["sent_at"])
 
@@ -213,7 +213,7 @@ def _step_with_plans_outside_U(prepared) -> tuple[Coordinator, GuardedPlant]:
     while not coord.finished:  # the same plans every round: converged after the second
         for name in NAMES:
             sub = prepared.system.subsystems[NAMES.index(name)]
-            coord.on_plan(PlanMessage(run=RUN, k=0, iteration=coord.iteration, sender=name, status="solved",
+            coord.on_plan(PlanMessage(run=RUN, k=0, round=coord.round, sender=name, status="solved",
                                       z=np.zeros((N + 1, sub.n)), v=np.full((N, sub.m), BAD), cost=0.0,
                                       solve_time=0.0, qp_iterations=1))
     return coord, plant
@@ -227,7 +227,7 @@ def test_plans_outside_U_never_reach_the_plant(prepared):
 
 def test_coordinator_guard_catches_an_invalid_input(prepared, monkeypatch):
     """The guard is not a tautology: a plan outside U that the coordinator accepts shows up."""
-    monkeypatch.setattr("dmpc.plant.barrier.input_excess", lambda input_set, v: -np.inf)
+    monkeypatch.setattr("dmpc.coordinator.barrier.input_excess", lambda input_set, v: -np.inf)
     coord, plant = _step_with_plans_outside_U(prepared)
     assert plant.steps == 1 and coord.inputs_refused == {}
     assert any("outside U" in v for v in plant.violations)
@@ -292,7 +292,7 @@ def release_payload(draw, prepared, name: str, k: int, it: int, fault: str) -> t
     if not (k == 0 and it == 0):
         for j in range(M):
             assumed[j] = draw(st.sampled_from([(-1, -1), (k, it - 1) if it > 0 else (k - 1, 0), (max(k - 1, 0), 0)]))
-    fields = dict(run=RUN, k=k, iteration=it, x=x, centres=values(draw, (n,)),
+    fields = dict(run=RUN, k=k, round=it, x=x, centres=values(draw, (n,)),
                   sizes=np.full(M, draw(st.floats(0, VALID))), assumed=assumed)
     i = NAMES.index(name)
     others = [NAMES[j] for j in system.neighbours[i] if j != i]
@@ -383,7 +383,7 @@ def test_agent_node_survives_hostile_messages(prepared, data):
     assert set(node.rejected) <= {COORDINATOR, "1", "3"}
     assert len(node.peers_alive) <= 3
     # every plan sent is decodable, and no (k, round) is answered twice
-    answered = [(m.k, m.iteration) for m in map(decode, sent)]
+    answered = [(m.k, m.round) for m in map(decode, sent)]
     assert answered == sorted(set(answered))
     assert len(controller.calls) == len(sent)
 
@@ -406,7 +406,7 @@ def test_plant_node_survives_hostile_messages(prepared, data):
     bus = MemoryBus()
     records = []
     deadline = data.draw(st.sampled_from([None, 0.5]))
-    node = PlantNode(bus, coord, "digest", records.append, deadline=deadline)
+    node = CoordinatorNode(bus, coord, "digest", records.append, deadline=deadline)
     node.announce()
     for name in NAMES:
         bus.declare_alive(keys.alive(RUN, keys.agent_role(name)))
@@ -431,7 +431,7 @@ def test_plant_node_survives_hostile_messages(prepared, data):
             fault = data.draw(st.sampled_from(PLAN_FAULTS))
             if fault == "again" and not coord.has_plan(name):
                 fault = "valid"
-            key, payload = plan_payload(data.draw, prepared, name, coord.k, coord.iteration, fault)
+            key, payload = plan_payload(data.draw, prepared, name, coord.k, coord.round, fault)
         elif kind == "again" and history:
             key, payload = data.draw(st.sampled_from(history))
         elif kind == "ready":

@@ -7,9 +7,9 @@ import json
 import pytest
 
 from dmpc.agents.process import AgentOutcome, names_text, process_exit_code
-from dmpc.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from dmpc.records.agent_reports import FIRST_RELEASE, STARTUP, merge_agent_reports
 from dmpc.runtime.hosting import group_agents
+from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 
 NAMES = [str(i) for i in range(1, 11)]
 
@@ -38,8 +38,8 @@ def test_agents_per_process_must_be_a_positive_integer(bad):
 
 def test_host_command_lines_list_their_agents_and_a_report_per_agent(tmp_path):
     from dmpc.runtime.launcher import child_commands
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     prepared = prepare(load_scenario("scenarios/paper.yaml"))
     children = child_commands(prepared, tmp_path, tmp_path / "scenario.yaml", tmp_path / "design.json", "r", 7447,
@@ -104,3 +104,24 @@ def test_agents_per_process_below_one_is_a_usage_error(monkeypatch, capsys):
 
     code, _, err = call(monkeypatch, capsys, "run", "scenarios/paper.yaml", "--agents-per-process", "0")
     assert code == 2 and "--agents-per-process" in err
+
+
+@pytest.mark.parametrize("agents, per_process, hosts", [
+    (5, 2, {"host-1": ["1", "2"], "host-2": ["3", "4"], "host-3": ["5"]}),  # the last process serves one agent
+    (4, 3, {"host-1": ["1", "2"], "host-2": ["3", "4"]}),
+    (3, 1, None),  # a process per agent: nothing to list
+])
+def test_the_summary_lists_every_host_process_and_its_agents(tmp_path, agents, per_process, hosts):
+    from dmpc.runtime.launcher import Child
+    from dmpc.runtime.launcher import merge_agent_reports as launcher_merge
+    from dmpc.runtime.supervisor import Supervision
+
+    names = NAMES[:agents]
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "summary.json").write_text(json.dumps({"steps": 3}))
+    children = [Child("plant", [], tmp_path / "logs" / "plant.log")]
+    children += [Child(h.role, [], tmp_path / "logs" / f"{h.role}.log", agents=h.agents)
+                 for h in group_agents(names, per_process)]
+    summary = launcher_merge(tmp_path, children, Supervision())
+    assert summary["launcher"].get("hosts") == hosts
+    assert json.loads((tmp_path / "summary.json").read_text())["launcher"].get("hosts") == hosts

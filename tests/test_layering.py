@@ -1,10 +1,13 @@
-"""The import layering: no two folders import each other, and dmpc's own modules are imported
-at the top of a module unless a one-line reason says why not.
+"""The import layering: the packages stand in a declared order of layers, each importing only
+the layers below it, so no two folders import each other and no import goes round in a circle;
+the top of dmpc/ holds only the package's own ``__init__``; and dmpc's own modules are imported at
+the top of a module unless a one-line reason says why not.
 
 The nodes are the installed packages of pyproject.toml: each subpackage of dmpc (``dmpc.agents``
-from agents/, ``dmpc.plant`` from plant/, ``dmpc.bus`` from bus/, ``dmpc.design``, ...) is one
-node, and each top-level module of dmpc/ (``dmpc.system``, ``dmpc.cli``, ...) is a node of its
-own. Every import counts: at the top, inside functions and under ``if TYPE_CHECKING``.
+from agents/, ``dmpc.plant`` from plant/, ``dmpc.coordinator`` from coordinator/, ``dmpc.bus``
+from bus/, ``dmpc.core``, ``dmpc.offline``, ...) is one node, and a module directly in dmpc/ would
+be a node of its own. Every import counts: at the top, inside functions and under
+``if TYPE_CHECKING``.
 """
 from __future__ import annotations
 
@@ -124,6 +127,48 @@ def two_way_ties(packages: dict[str, Path], imports: list[Import]) -> list[str]:
     return ties
 
 
+def cycles(packages: dict[str, Path], imports: list[Import]) -> list[list[str]]:
+    """The circles of nodes that import each other, directly or through others (each sorted)."""
+    edges: dict[str, set[str]] = {}
+    for imp in imports:
+        a, b = node_of(imp.module, packages), node_of(imp.target, packages)
+        if a != b:
+            edges.setdefault(a, set()).add(b)
+
+    def reach(start: str) -> set[str]:
+        seen, todo = set(), [start]
+        while todo:
+            for nxt in edges.get(todo.pop(), ()):
+                if nxt not in seen:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        return seen
+
+    reached = {node: reach(node) for node in edges}
+    found = {tuple(sorted(n for n in reached if n in reached[node] and node in reached[n]))
+             for node in reached if node in reached[node]}
+    return sorted(list(c) for c in found)
+
+
+def layer_of(node: str, layers: tuple[tuple[str, ...], ...]) -> int | None:
+    """The index of the layer that holds ``node`` (None if no layer does)."""
+    return next((i for i, layer in enumerate(layers) if node in layer), None)
+
+
+def upward(packages: dict[str, Path], imports: list[Import], layers: tuple[tuple[str, ...], ...]) -> list[str]:
+    """One line per import of a node in the same layer or a higher one (a node's own modules aside)."""
+    found = []
+    for imp in imports:
+        a, b = node_of(imp.module, packages), node_of(imp.target, packages)
+        if a == b:
+            continue
+        la, lb = layer_of(a, layers), layer_of(b, layers)
+        if la is not None and lb is not None and lb >= la:
+            where = "the same layer" if la == lb else f"layer {lb}, above its own {la}"
+            found.append(f"{imp.module}:{imp.line} imports {imp.target}, of {where}")
+    return found
+
+
 def unexplained(imports: list[Import]) -> list[str]:
     """In-function imports of dmpc modules without a one-line reason after them."""
     return [f"{i.module}:{i.line} imports {i.target} inside a function without a reason comment"
@@ -136,19 +181,64 @@ def _is_reason(comment: str) -> bool:
 
 # ---------------------------------------------------------------------------- the tree as it is
 
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("dmpc.core", "dmpc.terminal"),  # the numerical core; what the terminal shows and the exit codes
+    ("dmpc.offline", "dmpc.tracking", "dmpc.bus"),  # offline design, setpoint targets, transport
+    ("dmpc.methods", "dmpc.security"),  # the methods' terminal sets; TLS, access control, checks of what arrives
+    ("dmpc.scenario",),  # scenario files
+    ("dmpc.prepared",),  # a prepared run: what every role is built from
+    ("dmpc.records",),  # the run folder
+    ("dmpc.agents", "dmpc.plant"),  # the agents; the plant
+    ("dmpc.coordinator",),  # the step barrier, its node and process
+    ("dmpc.runtime",),  # a run in this process, as processes, or by direct calls
+    ("dmpc.setup",),  # from a scenario to a prepared run (it tries the first step)
+    ("dmpc.evaluation", "dmpc.watch", "dmpc.plots"),  # comparisons, the live view, figures
+    ("dmpc.bench",),  # benchmarks
+    ("dmpc.api", "dmpc.cli"),  # the entry points: Python and the command line
+    ("dmpc",),  # the package: the public names, loaded on first use
+)
+"""The layers, lowest first: a node imports only nodes of lower layers."""
+
+
 def test_the_walker_sees_the_packages_and_their_imports():
     packages, imports = import_graph()
-    assert packages["dmpc.agents"] == ROOT / "agents" and packages["dmpc.design"] == ROOT / "dmpc" / "design"
+    assert packages["dmpc.agents"] == ROOT / "agents" and packages["dmpc.offline"] == ROOT / "dmpc" / "offline"
+    assert packages["dmpc.coordinator"] == ROOT / "coordinator"
     seen = {(node_of(i.module, packages), node_of(i.target, packages)) for i in imports}
-    assert ("dmpc.runtime", "dmpc.plant") in seen and ("dmpc.agents", "dmpc.bus") in seen
+    assert ("dmpc.runtime", "dmpc.coordinator") in seen and ("dmpc.agents", "dmpc.bus") in seen
     assert ("dmpc.cli", "dmpc.agents") in seen  # an import inside a function counts
-    assert node_of("dmpc.system", packages) == "dmpc.system" and node_of("dmpc.plant.node", packages) == "dmpc.plant"
+    assert ("dmpc.prepared", "dmpc.scenario") in seen  # an import under TYPE_CHECKING counts
+    assert node_of("dmpc.core.system", packages) == "dmpc.core" and node_of("dmpc.coordinator.node", packages) == "dmpc.coordinator"
+    assert node_of("dmpc.cli.forkserver", packages) == "dmpc.cli"
+
+
+def test_every_package_has_one_layer():
+    packages = package_dirs()
+    placed = [node for layer in LAYERS for node in layer]
+    assert sorted(placed) == sorted(set(placed)), "a package is in two layers"
+    assert sorted(placed) == sorted(packages), "packages without a layer, or layers without a package"
+
+
+def test_no_package_imports_its_layer_or_a_higher_one():
+    packages, imports = import_graph()
+    found = upward(packages, imports, LAYERS)
+    assert not found, "imports against the layers:\n" + "\n".join(found)
+
+
+def test_no_import_goes_round_in_a_circle():
+    packages, imports = import_graph()
+    assert cycles(packages, imports) == []
 
 
 def test_no_two_folders_import_each_other():
     packages, imports = import_graph()
     ties = two_way_ties(packages, imports)
     assert not ties, "folders that import each other:\n" + "\n".join(ties)
+
+
+def test_the_top_of_dmpc_holds_only_the_package_itself():
+    """Every module of dmpc/ is in a folder that says what it holds; no package imports the top."""
+    assert sorted(path.name for path in (ROOT / "dmpc").glob("*.py")) == ["__init__.py"]
 
 
 def test_imports_of_dmpc_inside_functions_say_why():
@@ -198,3 +288,36 @@ def test_an_import_inside_a_function_needs_a_reason(tmp_path):
     _, imports = import_graph(root)
     missing = unexplained(imports)
     assert [m.split(" ")[0] for m in missing] == ["dmpc.runtime.setup:2", "dmpc.runtime.setup:10"]
+
+
+def test_an_import_against_the_layers_is_found_inside_a_function_and_under_type_checking(tmp_path):
+    root = _tree(tmp_path, {
+        "dmpc/__init__.py": "", "dmpc/system.py": "",
+        "dmpc/runtime/__init__.py": "", "dmpc/runtime/setup.py": "from dmpc.system import x\n",
+        "agents/__init__.py": "",
+        "agents/process.py": ("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from dmpc.runtime import setup\n"
+                              "def f():\n    from dmpc.runtime.setup import y  # start-up time: only here\n"),
+    })
+    packages, imports = import_graph(root)
+    layers = (("dmpc.system",), ("dmpc.agents",), ("dmpc.runtime",), ("dmpc",))
+    found = upward(packages, imports, layers)
+    assert [line.split(" ")[0] for line in found] == ["dmpc.agents.process:3", "dmpc.agents.process:5"]
+    assert "of layer 2, above its own 1" in found[0]
+    assert upward(packages, imports, (("dmpc.system",), ("dmpc.runtime",), ("dmpc.agents",), ("dmpc",))) == []
+    assert "of the same layer" in upward(packages, imports, (("dmpc.system",), ("dmpc.agents", "dmpc.runtime")))[0]
+
+
+def test_a_circle_of_three_folders_is_found(tmp_path):
+    """No two of them import each other, yet the imports go round."""
+    root = _tree(tmp_path, {
+        "dmpc/__init__.py": "",
+        "dmpc/runtime/__init__.py": "", "dmpc/runtime/launch.py": "from dmpc.agents.process import run\n",
+        "agents/__init__.py": "", "agents/process.py": "def f():\n    from dmpc.watch import view  # only here\n",
+        "dmpc/watch/__init__.py": "", "dmpc/watch/view.py": "from dmpc.runtime import launch\n",
+    })
+    (root / "pyproject.toml").write_text(
+        '[tool.setuptools]\npackage-dir = { "dmpc" = "dmpc", "dmpc.agents" = "agents" }\n'
+        'packages = ["dmpc", "dmpc.runtime", "dmpc.watch", "dmpc.agents"]\n')
+    packages, imports = import_graph(root)
+    assert two_way_ties(packages, imports) == []
+    assert cycles(packages, imports) == [["dmpc.agents", "dmpc.runtime", "dmpc.watch"]]

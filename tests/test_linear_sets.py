@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from dmpc.qp_status import SOLVED, QPStatus
-from dmpc.system import LinearSet, stack_sets
+from dmpc.core.qp_status import SOLVED, QPStatus
+from dmpc.core.system import LinearSet, stack_sets
 
 INF = np.inf
 TWO_SIDED = LinearSet(np.array([[1.0, 2.0], [0.0, 1.0], [1.0, -1.0]]), np.array([-1.0, -INF, -INF]),

@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 from scipy.optimize import linprog
 
 from dmpc.agents.local_qp import LocalQP, QPStatus
-from dmpc.design.tubes import Tightening
-from dmpc.system import LinearSet, Subsystem
+from dmpc.core.system import LinearSet, Subsystem
+from dmpc.offline.tubes import Tightening
 from tests.helpers.reference import A_II, B_II, P_PAPER, Q_I, R_I
 
 N = 10

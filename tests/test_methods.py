@@ -11,22 +11,22 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
-from dmpc.central_qp import CentralQP
+from dmpc.coordinator.barrier import Coordinator
+from dmpc.core.central_qp import CentralQP
 from dmpc.evaluation.compare import compare
 from dmpc.methods import METHOD_NAMES, method_spec, terminal_policy
 from dmpc.methods.inscribed import inscribed_rows, polytope_vertices, unit_ball_polytope
 from dmpc.methods.levels import containment, dual_norms, fit_levels, level_increments, static_level
 from dmpc.methods.policy import EllipsoidPolicy
 from dmpc.methods.terminal_rows import InscribedTerminal
-from dmpc.plant.barrier import Coordinator
 from dmpc.plant.dynamics import Plant
+from dmpc.prepared import design_digest
+from dmpc.prepared.bundle import load_bundle, write_bundle
 from dmpc.records.session import RunRecorder
-from dmpc.run_bundle import load_bundle, write_bundle
-from dmpc.run_spec import design_digest
 from dmpc.runtime.direct import DirectLoop
 from dmpc.runtime.inprocess import record_run, simulate
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from tests.helpers.reference import P_PAPER, PAPER, Q_I, R_I, U_BAR, block_diag, chain_matrices, chain_x0
 
 DISTRIBUTED = [m for m in METHOD_NAMES if method_spec(m).distributed]
@@ -342,3 +342,21 @@ def test_centralized_has_no_terminal_policy(paper):
 def test_ellipsoid_policy_polygon_sides_are_configurable(paper):
     policy = EllipsoidPolicy(paper.system, paper.design, "ellipsoid", adaptive=False, facets=8)
     assert policy.agent_terminal(0).T.shape == (8, 2)
+
+
+def test_method_names_defaults_and_the_scenario_agree():
+    """One list of methods, one default, and run.json keeps the scenario's names of the Jacobi rounds."""
+    from typing import get_args
+
+    from dmpc.core.steps import COUPLINGS, MODES, ProtocolOptions
+    from dmpc.methods import DEFAULT_METHOD, METHOD_NAMES, METHODS, Method
+    from dmpc.scenario.schema import OptionsSpec
+
+    assert METHOD_NAMES == get_args(Method) == tuple(METHODS) and DEFAULT_METHOD == "tv-box"
+    fields = OptionsSpec.model_fields
+    assert get_args(fields["method"].annotation) == METHOD_NAMES and fields["method"].default == DEFAULT_METHOD
+    assert get_args(fields["mode"].annotation) == MODES and get_args(fields["coupling"].annotation) == COUPLINGS
+    options = ProtocolOptions(steps=5, rounds=3, tolerance=1e-6, initial_rounds=7, initial_tolerance=1e-8)
+    assert options.to_json() == {"steps": 5, "iterations": 3, "tolerance": 1e-6, "initial_iterations": 7,
+                                 "initial_tolerance": 1e-8}
+    assert ProtocolOptions.from_json(options.to_json()) == options

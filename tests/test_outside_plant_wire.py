@@ -27,8 +27,8 @@ from dmpc.plant.state_inbox import StateInbox
 from dmpc.scenario import build_system, load_scenario
 from dmpc.security.certs import make_run_security
 from dmpc.security.files import node_security
-from tests.helpers.bad_plant import FORGED_REASON
 from tests.e2e_helpers import ROOT, free_port
+from tests.helpers.bad_plant import FORGED_REASON
 
 pytestmark = pytest.mark.e2e
 
@@ -44,9 +44,9 @@ def system():
 class FakeCoordinator:
     """A Zenoh peer listening on a free port that holds the coordinator's token and records states."""
 
-    def __init__(self, system, tls: Path | None = None) -> None:
+    def __init__(self, system, tls: Path | None = None, port: int | None = None) -> None:
         self.system = system
-        self.endpoint = f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_port()}"
+        self.endpoint = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port or free_port()}"
         files, acl = node_security(tls, keys.COORDINATOR_ROLE) if tls else (None, None)
         self.bus = ZenohBus(session_config(listen=[self.endpoint], tls=files, acl=acl))
         self.states: list[tuple[str, State]] = []
@@ -181,6 +181,27 @@ def test_whole_plant_follows_the_rules_and_the_dynamics(coordinator, start, syst
     assert "Traceback" not in err
 
 
+def test_a_plant_started_before_the_coordinator_listens_joins_when_it_does(start, system):
+    """docs/protocol.md, "Connecting": the plant keeps trying to reach the endpoint."""
+    port = free_port()
+    proc = start(f"tcp/127.0.0.1:{port}")
+    time.sleep(3.0)  # the plant starts first: nothing listens on the port yet
+    assert proc.poll() is None, finish(proc)
+    coordinator = FakeCoordinator(system, port=port)
+    try:
+        assert coordinator.wait(lambda: coordinator.of_step(0), timeout=20), "x(0) never came"
+        reference = Plant(system)
+        coordinator.send_inputs(0, inputs_of(0))
+        assert coordinator.wait(lambda: coordinator.of_step(1))
+        assert np.array_equal(coordinator.assembled(1), reference.step(inputs_of(0)))
+        coordinator.stop("finished", 1)
+        code, out, err = finish(proc)
+        assert code == 0, err
+        assert out.strip() == "outside plant (plant): finished after 1 steps"
+    finally:
+        coordinator.bus.close()
+
+
 def test_sensors_report_their_own_subsystems_only(coordinator, start, system):
     first = start(coordinator.endpoint, "--sensor", "1", "--sensor", "2")
     second = start(coordinator.endpoint, "--sensor", "3", "--sensor", "4")
@@ -304,3 +325,20 @@ def test_with_tls_the_plant_role_may_publish_its_state_and_nothing_else(system, 
             proc.kill()
             proc.wait()
         coordinator.bus.close()
+
+
+def test_a_plant_that_never_sees_a_coordinator_gives_up_after_its_startup_timeout(start):
+    """docs/protocol.md: a plant waits --startup-timeout for the coordinator's token, then exits 1
+    naming the run; a peer that listens but holds no coordinator token does not count."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    bus = ZenohBus(session_config(listen=[endpoint]))
+    try:
+        t0 = time.monotonic()
+        proc = start(endpoint, "--startup-timeout", "2")
+        code, out, err = finish(proc)
+        elapsed = time.monotonic() - t0
+    finally:
+        bus.close()
+    assert code == 1, out + err
+    assert out.strip() == f"outside plant (plant): no coordinator of run {RUN!r} within 2 s"
+    assert 2.0 <= elapsed < 10.0

@@ -10,8 +10,8 @@ import pytest
 
 import dmpc
 from dmpc.plant.disturbance import DisturbanceSequence, gaussian_sequence, uniform_sequence
-from dmpc.runtime.plant_setup import function_reference, load_plant_function
 from dmpc.scenario import ScenarioError
+from dmpc.setup.plant import function_reference, load_plant_function
 from tests.helpers.user_plants import NONLINEARITY, fails_at_step_2, mildly_nonlinear
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -107,7 +107,7 @@ def test_the_tube_keeps_the_constraints_under_the_same_bounded_disturbance():
 
 
 def test_the_tube_takes_a_bounded_disturbance_in():
-    from dmpc.runtime.setup import prepare
+    from dmpc.setup import prepare
 
     plain = prepare(tube_scenario(5, "robust").model_copy(update={"plant": dmpc.Scenario.model_fields["plant"]
                                                                  .default_factory()}))

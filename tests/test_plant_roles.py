@@ -16,14 +16,15 @@ from dmpc.bus import keys
 from dmpc.bus.codec import encode
 from dmpc.bus.memory import MemoryBus
 from dmpc.bus.messages import PROTOCOL_VERSION, Release, State
-from dmpc.plant.barrier import Coordinator
+from dmpc.coordinator.barrier import Coordinator
+from dmpc.coordinator.process import run_coordinator
 from dmpc.plant.dynamics import Plant
-from dmpc.plant.plant_role import PlantRole
-from dmpc.plant.process import run_plant
+from dmpc.plant.role import PlantRole
 from dmpc.records.session import RunRecorder
+from dmpc.records.tables import print_summary
 from dmpc.runtime.inprocess import simulate
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from tests.helpers.cli import call, one_error_line
 from tests.helpers.reference import PAPER
 
@@ -73,7 +74,7 @@ def test_split_roles_on_one_bus_give_the_trajectory_of_simulate(tmp_path, paper,
     for plant in plants:
         plant.announce()
     with RunRecorder(tmp_path / "run", paper, show_progress=False) as recorder:
-        outcome = run_plant(paper, recorder, bus, RUN, startup_timeout=10.0, external_plant=True, plant_timeout=5.0)
+        outcome = run_coordinator(paper, recorder, bus, RUN, startup_timeout=10.0, external_plant=True, plant_timeout=5.0)
     assert outcome.code == 0, outcome.message
     assert outcome.summary["plant"] == {"model": "outside"}
     with np.load(tmp_path / "run" / "trajectory.npz") as arrays:
@@ -94,12 +95,43 @@ def test_a_state_of_the_wrong_shape_is_dropped_and_the_run_stops_naming_the_sens
     wrong = encode(State(run=RUN, k=0, sender=bad, x={paper.names[3]: np.zeros(5)}))
     bus.call_later(0.5, lambda: bus.publish(keys.state(RUN, bad), wrong))  # once the coordinator listens
     with RunRecorder(tmp_path / "run", paper, show_progress=False) as recorder:
-        outcome = run_plant(paper, recorder, bus, RUN, startup_timeout=3.0, external_plant=True)
+        outcome = run_coordinator(paper, recorder, bus, RUN, startup_timeout=3.0, external_plant=True)
     assert outcome.code == 1
     assert "the plant sent no state for step 0 within 3 s (missing: subsystems 4)" in outcome.message
     assert "sensor-4: alive; last state dropped: the state of subsystem 4 has shape (5,), expected (2,)" \
         in outcome.message
     assert outcome.summary["rejected"].get("sensor-4") == 1
+
+
+def test_a_state_dropped_once_and_sent_again_leaves_the_run_ok_and_says_so_on_the_console(tmp_path, paper, capsys):
+    """x(3) first arrives with a NaN in subsystem 2; the coordinator drops it, repeats the inputs,
+    and the plant's answer to the repeat completes the step. The summary counts the drop by its
+    whole reason, and the printed summary has one line about it."""
+    bus = MemoryBus()
+    agents_on(bus, paper)
+    PlantRole(bus, Plant(paper.system), paper.system, RUN).announce()
+    real_publish, spoilt = bus.publish, []
+
+    def publish(key, payload):
+        body = msgpack.unpackb(payload, raw=False)
+        if key == keys.state(RUN, keys.PLANT_ROLE) and body["k"] == 3 and not spoilt:
+            body["x"]["2"]["data"] = np.array([np.nan, 0.0], "<f8").tobytes()
+            spoilt.append(key)
+            payload = msgpack.packb(body, use_bin_type=True)
+        real_publish(key, payload)
+
+    bus.publish = publish
+    with RunRecorder(tmp_path / "run", paper, show_progress=False) as recorder:
+        outcome = run_coordinator(paper, recorder, bus, RUN, startup_timeout=10.0, external_plant=True, plant_timeout=5.0)
+    assert spoilt and outcome.code == 0, outcome.message
+    summary = outcome.summary
+    assert summary["verdict"] == "ok" and summary["steps"] == paper.protocol.steps
+    assert summary["rejected"] == {"plant": 1}
+    assert summary["rejected_reasons"] == {"x[2]: non-finite values": 1}
+    capsys.readouterr()
+    print_summary(summary, tmp_path / "run")
+    lines = [line for line in capsys.readouterr().out.splitlines() if "dropped by the coordinator" in line]
+    assert len(lines) == 1 and "1 from plant (x[2]: non-finite values)" in lines[0], lines
 
 
 def test_an_agent_of_another_protocol_version_is_named_with_both_versions(tmp_path, paper):
@@ -110,7 +142,7 @@ def test_an_agent_of_another_protocol_version_is_named_with_both_versions(tmp_pa
     bus.publish = lambda key, payload: real_publish(
         key, with_version(payload, 2) if key == keys.ready(RUN, "4") else payload)
     with RunRecorder(tmp_path / "run", paper, show_progress=False) as recorder:
-        outcome = run_plant(paper, recorder, bus, RUN, startup_timeout=3.0)
+        outcome = run_coordinator(paper, recorder, bus, RUN, startup_timeout=3.0)
     assert outcome.code == 1
     assert f"agent 4 speaks protocol version 2; this coordinator speaks protocol version {PROTOCOL_VERSION}" \
         in outcome.message
@@ -121,7 +153,7 @@ def test_an_agent_names_a_coordinator_of_another_protocol_version(paper):
     bus = MemoryBus()
     node = agents_on(bus, paper)[0]
     bus.declare_alive(keys.alive(RUN, keys.COORDINATOR_ROLE))
-    release = Release(run=RUN, k=0, iteration=0, x=paper.system.x0, centres=np.zeros(paper.system.n),
+    release = Release(run=RUN, k=0, round=0, x=paper.system.x0, centres=np.zeros(paper.system.n),
                       sizes=np.ones(paper.system.M), assumed=np.full((paper.system.M, 2), -1))
     bus.publish(keys.release(RUN), with_version(encode(release), 4))
     ends: dict = {}

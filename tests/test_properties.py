@@ -24,10 +24,19 @@ import pytest
 
 from dmpc.records.run_folder import trajectory_arrays
 from dmpc.runtime.inprocess import simulate
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from tests.helpers.reference import (
-    A_II, A_IJ, B_II, CHAIN, PAPER, U_BAR, block_diag, chain_matrices, chain_x0, cube_vertices,
+    A_II,
+    A_IJ,
+    B_II,
+    CHAIN,
+    PAPER,
+    U_BAR,
+    block_diag,
+    chain_matrices,
+    chain_x0,
+    cube_vertices,
 )
 
 N = 10

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from dmpc.bus import codec, keys
-from dmpc.bus.messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Inputs, PlanMessage, Ready, Release, State, Stop)
+from dmpc.bus.messages import MESSAGE_TYPES, PROTOCOL_VERSION, Inputs, PlanMessage, Ready, Release, State, Stop
 from dmpc.security.acl import access_control
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
@@ -151,7 +151,7 @@ def field_problems(doc: dict[str, str], type_name: str, cls: type) -> list[str]:
     rows = one_table(message_section(doc, type_name), doc)
     assert [plain(c) for c in rows[0][:3]] == ["field", "wire type", "shape"]
     documented = [plain(row[0]) for row in rows[1:]]
-    fields = [f.name for f in dataclasses.fields(cls)]
+    fields = list(codec.wire_fields(cls)) if cls in MESSAGE_TYPES.values() else [f.name for f in dataclasses.fields(cls)]
     if documented == fields:
         return []
     return [f"{type_name}: the page lists {documented}, the code has {fields}"]
@@ -175,10 +175,10 @@ def examples() -> dict[str, object]:
     """One message of each type, every optional part filled in so that every value has a type."""
     z, v = np.zeros((3, 2)), np.zeros((2, 1))
     return {
-        "release": Release(run="r", k=1, iteration=2, x=np.zeros(4), centres=np.zeros(4), sizes=np.ones(2),
+        "release": Release(run="r", k=1, round=2, x=np.zeros(4), centres=np.zeros(4), sizes=np.ones(2),
                            assumed=np.array([[-1, -1], [0, 1]], dtype=np.int64), skipped=("b",),
                            provided={"a": (z, v)}),
-        "plan": PlanMessage(run="r", k=1, iteration=2, sender="a", status="solved", z=z, v=v, cost=1.0,
+        "plan": PlanMessage(run="r", k=1, round=2, sender="a", status="solved", z=z, v=v, cost=1.0,
                             solve_time=0.01, qp_iterations=25, sent_at=12.5),
         "ready": Ready(run="r", sender="a", design_digest="d", pid=7, scenario="paper", horizon=2),
         "stop": Stop(run="r", k=3, reason="finished"),

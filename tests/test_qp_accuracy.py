@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import yaml
 
-from dmpc import mpc_qp
 from dmpc.agents.local_qp import LocalQP
+from dmpc.core import mpc_qp
 from dmpc.runtime.inprocess import simulate
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from tests.helpers.reference import A_II, A_IJ, B_II, K_PAPER, PAPER, PAPER_LMI
 
 Q100 = {"subsystems.0.Q": [[100.0, 0.0], [0.0, 100.0]]}
@@ -95,7 +95,7 @@ def test_k0_rounds_match_an_accurate_reference(run, request, monkeypatch):
     r = request.getfixturevalue(run)
     first = r.records[0]
     assert first.max_change < r.prepared.protocol.initial_tolerance
-    assert first.rounds < r.prepared.protocol.initial_iterations
+    assert first.rounds < r.prepared.protocol.initial_rounds
     monkeypatch.setattr(mpc_qp, "DEFAULT_SETTINGS", {**mpc_qp.DEFAULT_SETTINGS, **ACCURATE})
     reference = WatchedRun(r.path, {**r.overrides, "steps": 1})
     assert abs(first.rounds - reference.records[0].rounds) <= 1

@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import errno
-import math
 import json
+import math
 
 import numpy as np
 import pytest
@@ -14,8 +14,8 @@ from dmpc.records.files import ROWS
 from dmpc.records.run_folder import RecordWriteError, RunFolder, trajectory_arrays
 from dmpc.records.step_log import arrays_from_log, read_step_log
 from dmpc.runtime.inprocess import simulate
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from tests.helpers.cli import call
 
 

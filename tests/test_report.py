@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from dmpc import cli
-from dmpc import figures as report
+from dmpc.plots import report
+from dmpc.plots.style import use_log
 from tests.helpers.cli import call
 
 FIGURE_FILES = [f"{name}.png" for name in report.FIGURES]
@@ -120,7 +121,7 @@ def test_run_reads_bounds_names_and_dimensions(paper_run):
     assert run.names == ["1", "2", "3", "4"] and run.n == [2] * 4 and run.m == [1] * 4
     assert all(lo.tolist() == [-2.5] and hi.tolist() == [2.5] for lo, hi in zip(run.lower, run.upper))
     assert run.method == "tv-box" and run.scenario == "paper" and run.r is None
-    assert report._use_log([run.J]) and report._use_log([run.S])  # J falls by > 10 decades
+    assert use_log([run.J]) and use_log([run.S])  # J falls by > 10 decades
 
 
 def test_without_scenario_yaml_the_design_gives_the_dimensions(tmp_path, paper_run):
@@ -129,6 +130,23 @@ def test_without_scenario_yaml_the_design_gives_the_dimensions(tmp_path, paper_r
     run = report.load_run(run_dir)
     assert run.n == [2] * 4 and run.m == [1] * 4 and run.lower == [None] * 4
     assert_five_figures(Path(report.draw_run(run_dir)[0]).parent)
+
+
+def test_report_and_load_run_read_a_folder_alike(tmp_path, paper_run):
+    """One reader: a scenario.yaml that no longer loads is left out, with a note, by the figures
+    and by dmpc.load_run alike; both split the arrays by the names and sizes trajectory.npz holds."""
+    import dmpc
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(paper_run, run_dir, ignore=shutil.ignore_patterns("figures"))
+    (run_dir / "scenario.yaml").write_text("name: paper\nsubsystems: not a list\n")
+    notes: list[str] = []
+    run = report.load_run(run_dir, notes)
+    result = dmpc.load_run(run_dir)
+    assert run.names == list(result.names) == ["1", "2", "3", "4"] and run.n == [2] * 4 and run.m == [1] * 4
+    assert run.lower == [None] * 4 and result.dt is None
+    assert len(notes) == 1 and "scenario.yaml does not load" in notes[0]
+    np.testing.assert_array_equal(run.x[:, 2:4], result.x["2"])
 
 
 def test_polytope_input_bounds_are_its_bounding_box():

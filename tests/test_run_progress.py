@@ -6,7 +6,7 @@ import io
 import pytest
 from rich.console import Console
 
-from dmpc.evaluation.run_progress import RunProgress, duration_text
+from dmpc.terminal.progress import ProgressBar, RunProgress, duration_text
 from tests.helpers.cli import call
 from tests.helpers.reference import PAPER
 
@@ -44,3 +44,20 @@ def test_roa_announces_its_runs_on_stderr(tmp_path, monkeypatch, capsys):
     code, _, err = call(monkeypatch, capsys, "roa", str(PAPER), "--N", "3", "--samples", "2", "--methods", "tv-box",
                         "--out", str(tmp_path / "q"), "--quiet")
     assert code == 0 and "closed-loop runs" not in err
+
+
+def test_one_bar_for_the_steps_drawn_only_where_it_is_seen():
+    """The bar of dmpc simulate and dmpc run: nothing at all in a file or pipe; on a terminal the
+    count and the fields it was given."""
+    out = io.StringIO()
+    bar = ProgressBar("steps", 3, Console(file=out, width=100), fields={"J": "-"})
+    with bar:
+        bar.advance(J="1.5")
+        bar.update(3)
+    assert not bar.shown and out.getvalue() == ""
+    out = io.StringIO()
+    bar = ProgressBar("steps", 3, Console(file=out, width=100, force_terminal=True), fields={"J": "-"})
+    with bar:
+        bar.advance(J="1.5")
+        bar.update(3, J="0.25")
+    assert bar.shown and "steps" in out.getvalue() and "3/3" in out.getvalue() and "J=0.25" in out.getvalue()

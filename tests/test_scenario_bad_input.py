@@ -52,6 +52,7 @@ EXPECTED = {
     "alpha0_wrong_length.yaml": ["terminal.alpha0.1:", "expected 2 entries"],
     "tube_robust_without_revision_bound.yaml": ["subsystems[1].revision_bound:", "robust"],
     "loss_out_of_range.yaml": ["faults.loss:", "1.5"],
+    "loss_without_deadline.yaml": ["faults.loss:", "lost messages need a deadline in lockstep mode"],
     "link_unknown_endpoint.yaml": ["faults.links[0].target:", "'5'"],
     "horizon_zero.yaml": ["horizon:", "greater than or equal to 1"],
     "recursive_alias.yaml": ["recursive_alias.yaml:", "recursive"],
@@ -86,6 +87,24 @@ def test_error_field_attribute(name):
     with pytest.raises(ScenarioError) as info:
         load_scenario(BAD / name)
     assert info.value.field == EXPECTED[name][0].rstrip(":")
+
+
+def test_validate_refuses_what_simulate_refuses(monkeypatch, capsys, tmp_path):
+    """A scenario that cannot run is not called valid: loss without a deadline, in the file or on a link."""
+    from tests.helpers.cli import call, one_error_line
+
+    cases = [(str(BAD / "loss_without_deadline.yaml"), []),
+             (str(PAPER), ["--set", "faults.links=[{source: 2, target: 3, loss: 0.1}]"])]
+    for path, extra in cases:
+        code, _, err = call(monkeypatch, capsys, "validate", path, *extra)
+        assert code == 2, err
+        refused = one_error_line(err)
+        assert "lost messages need a deadline" in refused
+        code, _, err = call(monkeypatch, capsys, "simulate", path, *extra, "--out", str(tmp_path / "r"), "--quiet")
+        assert code == 2 and one_error_line(err) == refused
+    code, out, err = call(monkeypatch, capsys, "validate", str(PAPER), "--set", "faults.loss=0.1", "--set",
+                          "options.deadline=0.05")
+    assert code == 0, err
 
 
 def test_python_tag_is_not_executed(tmp_path):

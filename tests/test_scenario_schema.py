@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from pydantic import BaseModel
 from scipy.linalg import block_diag
 
+from dmpc.core.system import CoupledSystem
 from dmpc.scenario import (
     Scenario,
     ScenarioError,
@@ -26,7 +27,6 @@ from dmpc.scenario import (
     scenario_json_schema,
     validate_scenario,
 )
-from dmpc.system import CoupledSystem
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = sorted((ROOT / "scenarios").glob("*.yaml"))

@@ -29,6 +29,7 @@ from dmpc.security.certs import make_certificates, make_run_security
 from dmpc.security.files import node_security, role_names, tls_files
 from dmpc.security.rejects import MAX_MAGNITUDE, UNKNOWN, Rejections, clearly_in_range, magnitude, out_of_range
 from tests.helpers.cli import call, one_error_line
+from tests.helpers.tls import ca_key_files
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = str(ROOT / "scenarios" / "paper.yaml")
@@ -41,8 +42,8 @@ PACKAGE_DIRS = ["dmpc", "agents", "plant", "bus"]
 
 @pytest.fixture(scope="module")
 def prepared():
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     return prepare(load_scenario(PAPER))
 
@@ -67,8 +68,29 @@ def common_name(cert: x509.Certificate) -> str:
 def test_every_role_gets_a_certificate_and_key(cert_dir):
     assert role_names(["1", "2", "3", "4"]) == ROLES
     names = {p.name for p in cert_dir.iterdir()}
-    expected = {"ca.pem", "ca.key", "acl.json"} | {f"{r}.pem" for r in ROLES} | {f"{r}.key" for r in ROLES}
+    expected = {"ca.pem", "acl.json"} | {f"{r}.pem" for r in ROLES} | {f"{r}.key" for r in ROLES}
     assert names == expected
+
+
+def test_no_file_of_the_directory_holds_the_ca_key(cert_dir):
+    assert ca_key_files(cert_dir, cert_dir / "ca.pem") == []
+    assert ca_key_files(cert_dir.parent, cert_dir / "ca.pem") == []  # not kept anywhere when no place is given
+
+
+def test_the_ca_key_is_kept_apart_and_owner_only_when_asked(tmp_path, prepared):
+    from dmpc.security.certs import default_ca_key_path
+
+    directory = tmp_path / "certs"
+    ca_key = default_ca_key_path(directory)
+    assert ca_key == tmp_path / "certs-ca.key"
+    make_run_security(directory, prepared.system, ca_key=ca_key)
+    assert ca_key_files(tmp_path, directory / "ca.pem") == ["certs-ca.key"]
+    assert ca_key_files(directory, directory / "ca.pem") == []
+    assert stat.S_IMODE(ca_key.stat().st_mode) == 0o600
+    assert stat.S_IMODE(directory.stat().st_mode) == 0o700
+    with pytest.raises(ValueError, match="already holds a CA key"):  # a kept CA key is not overwritten by mistake
+        make_run_security(tmp_path / "again", prepared.system, ca_key=ca_key)
+    assert not (tmp_path / "again").exists()
 
 
 def test_common_name_is_the_role_and_the_ca_signed_it(cert_dir):
@@ -93,7 +115,7 @@ def test_certificates_carry_the_hosts_as_subject_alternative_names(cert_dir):
 
 def test_private_keys_are_readable_by_their_owner_only(cert_dir):
     keys = sorted(cert_dir.glob("*.key"))
-    assert len(keys) == len(ROLES) + 1
+    assert len(keys) == len(ROLES)
     for path in keys:
         assert stat.S_IMODE(path.stat().st_mode) == 0o600, path.name
 
@@ -235,7 +257,12 @@ def test_certs_command_writes_the_directory(monkeypatch, capsys, tmp_path):
     code, out, err = call(monkeypatch, capsys, "certs", str(tmp_path / "c"), "--scenario", PAPER,
                           "--host", "192.168.1.20", "--run-id", "lab-1")
     assert code == 0, err
-    assert "router, coordinator, plant, agent-1, agent-2, agent-3, agent-4, sensor-1" in out and "ca.key" in out
+    assert "router, coordinator, plant, agent-1, agent-2, agent-3, agent-4, sensor-1" in out
+    ca_key = tmp_path / "c-ca.key"  # beside the directory, never in it
+    assert f"the CA's private key is {ca_key} (mode 0600)" in out
+    assert ca_key_files(tmp_path, tmp_path / "c" / "ca.pem") == ["c-ca.key"]
+    assert stat.S_IMODE(ca_key.stat().st_mode) == 0o600
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in (tmp_path / "c").glob("*.key"))
     san = load_cert(tmp_path / "c" / "agent-3.pem").extensions.get_extension_for_class(x509.SubjectAlternativeName)
     assert ipaddress.ip_address("192.168.1.20") in san.value.get_values_for_type(x509.IPAddress)
     acl = read_acl(tmp_path / "c")
@@ -248,6 +275,19 @@ def test_certs_command_writes_the_directory(monkeypatch, capsys, tmp_path):
     code, _, err = call(monkeypatch, capsys, "certs", str(tmp_path / "c"), "--scenario", PAPER, "--force")
     assert code == 0, err
     assert (tmp_path / "c" / "ca.pem").read_bytes() != ca
+    assert ca_key_files(tmp_path, tmp_path / "c" / "ca.pem") == ["c-ca.key"]  # the new CA's key, in the same place
+
+
+def test_certs_command_writes_the_ca_key_where_asked_and_keeps_an_existing_one(monkeypatch, capsys, tmp_path):
+    ca_key = tmp_path / "offline" / "lab-ca.key"
+    code, out, err = call(monkeypatch, capsys, "certs", str(tmp_path / "c"), "--scenario", PAPER,
+                          "--ca-key", str(ca_key))
+    assert code == 0, err
+    assert ca_key_files(tmp_path, tmp_path / "c" / "ca.pem") == ["lab-ca.key"] and str(ca_key) in out
+    kept = ca_key.read_bytes()
+    code, _, err = call(monkeypatch, capsys, "certs", str(tmp_path / "d"), "--scenario", PAPER, "--ca-key", str(ca_key))
+    assert code == 2 and "already holds a CA key" in one_error_line(err) and "--force" in err
+    assert ca_key.read_bytes() == kept and not (tmp_path / "d").exists()
 
 
 @pytest.mark.parametrize("args, expected", [
@@ -369,6 +409,24 @@ def test_drops_are_counted_per_sender_and_logged_at_most_once_a_second(caplog):
     assert "999 more since the last report" in lines[-1] and "1001 dropped from 1" in lines[-1]
     assert all("\x1b" not in line for line in lines)  # the sender's text cannot drive the terminal
     assert rejects.summary() == "plant: dropped 3001 invalid messages ((unknown): 1000, 1: 1001, 2: 1000)"
+
+
+def test_a_reason_about_a_field_keeps_what_is_wrong_with_it_but_not_the_value_sent():
+    import msgpack
+
+    from dmpc.bus.codec import DecodeError, decode
+
+    body = {"protocol": 3, "type": "state", "run": "r", "k": 1, "sender": "plant",
+            "x": {"1": {"dtype": "<f8", "shape": [2], "data": np.array([0.0, np.inf], "<f8").tobytes()}}}
+    with pytest.raises(DecodeError) as caught:
+        decode(msgpack.packb(body, use_bin_type=True))
+    rejects = Rejections(logging.getLogger("test.rejects"), "plant", lambda: 0.0, known=["plant"])
+    rejects("plant", str(caught.value))
+    rejects("plant", "k: expected an integer >= 0, got 'seven'")
+    rejects("plant", "design: agent 4 uses design 1f2e (scenario 'paper', horizon 12); give every process ...")
+    rejects("plant", "not msgpack: ExtraData")
+    assert rejects.reasons == {"x[1]: non-finite values": 1, "k: expected an integer >= 0": 1, "design": 1,
+                               "not msgpack": 1}
 
 
 # ------------------------------------------------------------------ no unsafe deserialisation

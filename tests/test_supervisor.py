@@ -1,7 +1,11 @@
 """The launcher's supervision of its processes, on fake children and a fake clock."""
 from __future__ import annotations
 
-from dmpc.runtime.supervisor import BACKOFF, RestartPolicy, Supervisor, restart_note
+from pathlib import Path
+
+from dmpc.runtime.supervisor import BACKOFF, BACKOFF_MAX, RestartPolicy, Supervisor, restart_note
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 class FakeChild:
@@ -83,3 +87,40 @@ def test_a_failed_plant_ends_the_run_and_an_agent_leaving_normally_is_not_restar
     sup, ending = supervise([plant, agent], RestartPolicy(restarts=5))
     assert ending.failed == {"plant": 1}
     assert agent.incarnation == 0 and sup.record.restarts == {}
+
+
+class CrashesAfter:
+    """An agent whose every incarnation exits with ``code`` ``after`` s after it was started."""
+
+    def __init__(self, role: str, clock, after: float, code: int = -9) -> None:
+        self.role, self.clock, self.after, self.code = role, clock, after, code
+        self.incarnation = 0
+        self.started_at = [0.0]
+        self.crashed_at: list[float] = []
+
+    def poll(self):
+        if self.clock() < self.started_at[self.incarnation] + self.after:
+            return None
+        if len(self.crashed_at) == self.incarnation:
+            self.crashed_at.append(self.clock())  # the supervisor sees the exit now
+        return self.code
+
+
+def test_the_restart_backoff_doubles_up_to_its_cap_of_8_s():
+    """0.5, 1, 2, 4 s, then 8 s for every further restart (docs/runtime.md, "Supervision")."""
+    clock = Clock()
+    plant = FakeChild("plant", clock, times=(120.0,), codes=(0,))
+    agent = CrashesAfter("agent-1", clock, after=0.3)
+    sup, ending = supervise([plant, agent], RestartPolicy(restarts=8))
+    assert BACKOFF_MAX == 8.0 and ending.failed == {}
+    waits = [start - crash for crash, start in zip(agent.crashed_at, agent.started_at[1:])]
+    expected = [0.5, 1.0, 2.0, 4.0, 8.0, 8.0, 8.0, 8.0]
+    assert len(waits) == len(expected) and agent.incarnation == 8
+    assert all(abs(wait - want) <= 0.11 for wait, want in zip(waits, expected)), waits  # the poll is 0.05 s
+    assert sup.record.restarts == {"agent-1": 8} and sup.record.lost == ["agent-1"]  # the 9th crash is the last
+
+
+def test_the_docs_state_the_backoff_of_the_code():
+    text = " ".join((ROOT / "docs" / "runtime.md").read_text().split())
+    said = f"after {BACKOFF:g} s, doubled for each further restart of the same agent (at most {BACKOFF_MAX:g} s)"
+    assert said in text

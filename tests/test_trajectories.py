@@ -1,4 +1,4 @@
-"""dmpc.trajectories on small integer examples, with the expected values written out by hand.
+"""dmpc.core.trajectories on small integer examples, with the expected values written out by hand.
 
 Plan made at k' = 5 with N = 3: z = [1,2],[3,4],[5,6],[7,8]; v = 10, 20, 30.
 Local terminal dynamics Gamma = [[0,1],[2,0]], K = [1, 2] (chosen for exact integer arithmetic,
@@ -10,8 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dmpc.trajectories import (Plan, assumed_trajectory, candidate_plan, continued, coupling_feedforward, k_rollout,
-                               shifted_input)
+from dmpc.core.trajectories import (
+    Plan,
+    assumed_trajectory,
+    candidate_plan,
+    continued,
+    coupling_feedforward,
+    k_rollout,
+    shifted_input,
+)
 
 GAMMA = np.array([[0.0, 1.0], [2.0, 0.0]])
 K = np.array([[1.0, 2.0]])
@@ -21,7 +28,7 @@ X_NOW = np.array([-1.0, 1.0])
 
 @pytest.fixture
 def plan():
-    return Plan(k=5, iteration=2, z=np.array([[1.0, 2], [3, 4], [5, 6], [7, 8]]), v=np.array([[10.0], [20], [30]]))
+    return Plan(k=5, round=2, z=np.array([[1.0, 2], [3, 4], [5, 6], [7, 8]]), v=np.array([[10.0], [20], [30]]))
 
 
 # ---------------------------------------------------------------- continued

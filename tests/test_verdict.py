@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from dmpc.agents.controller import AgentController
-from dmpc.mpc_qp import QPStatus
+from dmpc.core.mpc_qp import QPStatus
+from dmpc.core.system import CoupledSystem, LinearSet, Subsystem
 from dmpc.records.verdict import DIVERGENCE_FACTOR, RunLimits, judge, state_bound_excess
-from dmpc.system import CoupledSystem, LinearSet, Subsystem
 from tests.helpers.cli import call
 
 TWO_CARTS = """
@@ -73,14 +73,18 @@ def test_carts_with_the_defaults_choose_a_horizon_and_are_ok(monkeypatch, capsys
     assert "(auto)" in out
 
 
-def test_carts_at_a_short_horizon_name_the_smallest_feasible_one(monkeypatch, capsys, tmp_path):
+def test_carts_at_a_short_horizon_name_the_horizon_the_distributed_step_needs(monkeypatch, capsys, tmp_path):
     design = json.loads(call(monkeypatch, capsys, "design", "scenarios/carts.yaml", "--json")[1])
-    smallest = design["start"]["smallest_centrally_feasible"]
+    start = design["start"]
+    assert start["smallest_feasible"] > start["smallest_centrally_feasible"]  # the case where the two differ
     code, _, err = call(monkeypatch, capsys, "simulate", "scenarios/carts.yaml", "--set", "horizon=10",
                         "--out", str(tmp_path / "r"), "--quiet")
     assert code == 2
     assert "infeasible for the centralised problem at N = 10" in err
-    assert f"smallest horizon for which it is feasible is N = {smallest}" in err
+    assert (f"the smallest horizon for which the distributed k = 0 step finds a plan for every agent is "
+            f"N = {start['smallest_feasible']} (the centralised problem alone is feasible from "
+            f"N = {start['smallest_centrally_feasible']})") in err
+    assert f"horizon: auto (N = {design['horizon']} here" in err
     assert not (tmp_path / "r").exists()
 
 
@@ -116,7 +120,8 @@ def test_a_far_start_run_anyway_fails_with_state_violated(monkeypatch, capsys, t
     first = out.splitlines()[0]
     assert first.startswith("verdict: FAILED (") and "state-violated" in first
     assert "failure state-violated: subsystem a: state outside its bounds by up to" in out
-    assert "failure infeasible-start" in out and "the centralised QP is infeasible too" in out
+    assert ("failure infeasible-start: no feasible plan at k = 0 for subsystem(s) a, b; no centralised seed: OSQP "
+            "reported the centralised QP infeasible; the start was not checked (design.check_start: false)") in out
 
 
 def test_tiny_inputs_on_the_paper_diverge(monkeypatch, capsys, tmp_path):
@@ -231,7 +236,7 @@ def test_state_bound_excess_per_subsystem_and_polytopes():
 
 
 def test_the_horizon_search_finds_the_smallest_feasible_horizon():
-    from dmpc.design.start import smallest_feasible_horizon
+    from dmpc.offline.start import smallest_feasible_horizon
 
     for smallest in (1, 2, 3, 7, 8, 9, 63, 64, 65, 150, 200):
         tried = []

@@ -32,8 +32,8 @@ PAPER = ROOT / "scenarios" / "paper.yaml"
 
 @pytest.fixture(scope="module")
 def prepared():
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     return prepare(load_scenario(PAPER))
 
@@ -129,17 +129,19 @@ def test_the_plant_hands_every_step_to_its_telemetry_after_recording_it(prepared
             order.append((rec.k, sorted(node.alive)))
 
     run = build_run(prepared, recorded.append)
-    run.plant.telemetry = Telemetry()
-    run.bus.run(until=lambda: run.plant.finished, timeout=60)
+    run.coordinator.telemetry = Telemetry()
+    run.bus.run(until=lambda: run.coordinator.finished, timeout=60)
     assert [k for k, _ in order] == list(range(30)) and order[0][1] == ["1", "2", "3", "4"]
 
 
 def test_telemetry_reaches_an_observer_only_while_one_listens(recorded, prepared):
     """Over a real Zenoh session: nothing is encoded without a subscriber; an observer that
     connects gets the description, every step and the summary."""
-    from dmpc.bus.session import free_tcp_port, open_session, session_config
+    from dmpc.bus import keys
+    from dmpc.bus.session import free_tcp_port, session_config
+    from dmpc.bus.zenoh_bus import ZenohBus
     from dmpc.watch.observer import BusObserver
-    from dmpc.watch.telemetry import Telemetry
+    from dmpc.watch.telemetry import ENCODING, KINDS, Telemetry
 
     folder, records = recorded
 
@@ -149,8 +151,9 @@ def test_telemetry_reaches_an_observer_only_while_one_listens(recorded, prepared
         rejects = type("R", (), {"counts": {"3": 1}, "reasons": {"stale": 1}})()
 
     port = free_tcp_port()
-    session = open_session(session_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
-    telemetry = Telemetry(session, "r-1", meta_json(prepared, "r-1"), meta_every=0.2)
+    bus = ZenohBus(session_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    publishers = {kind: bus.broadcast(keys.telemetry("r-1", kind), ENCODING) for kind in KINDS}
+    telemetry = Telemetry(publishers, "r-1", meta_json(prepared, "r-1"), meta_every=0.2)
     observer = None
     try:
         for rec in records[:3]:
@@ -177,7 +180,29 @@ def test_telemetry_reaches_an_observer_only_while_one_listens(recorded, prepared
         telemetry.close()
         if observer is not None:
             observer.close()
-        session.close()
+        bus.close()
+
+
+def test_telemetry_goes_through_the_bus_and_a_fault_injector_and_not_the_in_memory_bus(prepared):
+    """The coordinator's telemetry is made by its bus: a Zenoh bus (seen through the fault
+    injector, which does not touch observers) gives one; the in-memory bus, which nothing outside
+    the run can watch, gives none."""
+    from dmpc.bus.faults import PLANT_PROCESS, FaultPlan, FaultyBus, LinkFault
+    from dmpc.bus.memory import MemoryBus
+    from dmpc.bus.session import free_tcp_port, session_config
+    from dmpc.bus.zenoh_bus import ZenohBus
+    from dmpc.watch.telemetry import open_telemetry
+
+    assert MemoryBus().broadcast("dmpc/r/telemetry/step", "application/json") is None
+    assert open_telemetry(MemoryBus(), "r", prepared) is None
+    bus = ZenohBus(session_config(mode="peer", listen=[f"tcp/127.0.0.1:{free_tcp_port()}"]))
+    try:
+        faulty = FaultyBus(bus, PLANT_PROCESS, FaultPlan(default=LinkFault(0.0, 0.0, 0.5), seed=1))
+        telemetry = open_telemetry(faulty, "r", prepared)
+        assert telemetry is not None and telemetry.watched is False
+        telemetry.close()
+    finally:
+        bus.close()
 
 
 # ----------------------------------------------------------------------------------- the run's state
@@ -270,15 +295,15 @@ def test_agent_table_counts_fallbacks_rejoins_and_drops(prepared):
     table = agent_table(meta, history, 5, steps[4], None, {"rejected": {"1": 9}}, summary)
     assert table["fallbacks"] == [1, 2, 0, 0] and table["rejoins"] == [0, 1, 0, 0]
     assert table["state"] == ["fallback", "ok", "ok", "ok"]
-    assert table["dropped_plant"] == [0, 0, 4, 0]  # the summary's counts, once there
+    assert table["dropped_coordinator"] == [0, 0, 4, 0]  # the summary's counts, once there
     assert table["dropped_agent"] == ["-", "-", "2 (stale: 2)", "-"]
     table = agent_table(meta, history, 2, steps[1], {"3": False}, {"rejected": {"1": 9}}, None)
     assert table["state"] == ["ok", "late", "lost", "ok"] and table["alive"] == ["yes", "yes", "no", "yes"]
-    assert table["dropped_plant"] == [9, 0, 0, 0]
+    assert table["dropped_coordinator"] == [9, 0, 0, 0]
     nodes, edges = graph_tables(meta, table["state"])
-    assert nodes["name"] == ["plant", "1", "2", "3", "4"]
+    assert nodes["name"] == ["coordinator", "1", "2", "3", "4"]
     states = dict(zip(edges["link"], edges["state"]))
-    assert states["1 – 2 (plans)"] == "late" and states["2 – 3 (plans)"] == "down" and states["plant – 4 (release/plan)"] == "up"
+    assert states["1 – 2 (plans)"] == "late" and states["2 – 3 (plans)"] == "down" and states["coordinator – 4 (release/plan)"] == "up"
     assert link_state("ok", "waiting") == "idle"
 
 

@@ -144,8 +144,8 @@ def test_a_page_that_follows_the_run_then_dies_with_its_observer_changes_nothing
             driver.execute_script(RECORD_COUNTER)
             run.start_agents()
             wait_until(lambda: step_lines(run.out) >= 60, 60, what="step 60")
+            watch.send_signal(signal.SIGSTOP)  # first: the page's record is read locally, the run goes on
             shown = [parse_counter(text) for text in driver.execute_script("return window.dmpcCounts")]
-            watch.send_signal(signal.SIGSTOP)
             time.sleep(0.5)
             at = step_lines(run.out)
             watch.kill()

@@ -34,7 +34,7 @@ OPTIONS = {"options.mode": "realtime", "options.dt": 0.1, "options.deadline": 5.
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory) -> dict:
     """The reference (``dmpc simulate``), the run's inputs and a certificate directory."""
-    from dmpc.run_bundle import load_bundle
+    from dmpc.prepared.bundle import load_bundle
     from dmpc.security.certs import make_run_security
 
     base = tmp_path_factory.mktemp("watch-security")
@@ -130,7 +130,7 @@ def _rogue(argv: list[str]) -> int:
     from dmpc.bus.codec import encode
     from dmpc.bus.messages import PlanMessage, Ready, Stop
     from dmpc.bus.session import open_session, session_config
-    from dmpc.run_bundle import load_bundle
+    from dmpc.prepared.bundle import load_bundle
     from dmpc.security.files import node_security
 
     p = argparse.ArgumentParser(prog="rogue")
@@ -193,7 +193,7 @@ def _rogue(argv: list[str]) -> int:
         with lock:
             k = steps[-1] + 1 if steps else 0
         for r in range(2):  # the rounds a step of this run can have open
-            plan = PlanMessage(run=R, k=k, iteration=r, sender="3", status="solved", z=np.zeros((N + 1, n3)),
+            plan = PlanMessage(run=R, k=k, round=r, sender="3", status="solved", z=np.zeros((N + 1, n3)),
                                v=np.full((N, m3), 2.0), cost=0.0, solve_time=0.0, qp_iterations=1)
             session.put(keys.plan(R, "3"), encode(plan))
             counts["forged"] += 1

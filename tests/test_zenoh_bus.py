@@ -6,6 +6,7 @@ import threading
 import time
 
 import pytest
+
 from dmpc.bus.session import (
     BusError,
     TlsFiles,
@@ -14,7 +15,6 @@ from dmpc.bus.session import (
     session_config,
 )
 from dmpc.bus.zenoh_bus import POLL, ZenohBus
-
 from tests import helpers_zenoh as hz
 
 pytestmark = pytest.mark.e2e

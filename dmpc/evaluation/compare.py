@@ -25,8 +25,9 @@ from dmpc.methods import METHOD_NAMES, method_spec
 from dmpc.records.files import COMPARISON, STEP_LOG, TRAJECTORY
 from dmpc.records.run_folder import claim_folder, refuse_used, write_json
 from dmpc.records.session import RunRecorder
+from dmpc.records.tables import number_text
 from dmpc.runtime.inprocess import record_run
-from dmpc.runtime.setup import prepare
+from dmpc.setup import prepare
 
 CONVERGED = 1e-3
 
@@ -126,8 +127,8 @@ def comparison_rows(data: dict) -> list[list[str]]:
         verdict = e.get("verdict") or "-"
         if e.get("failures"):
             verdict = f"failed ({', '.join(e['failures'])})"
-        rows.append([method, verdict, "yes" if e["feasible"] else "no", str(e["fallbacks"]), f"{e['closed_loop_cost']:.4f}",
-                     "-" if ratio is None else f"{ratio:.4f}",
+        rows.append([method, verdict, "yes" if e["feasible"] else "no", str(e["fallbacks"]), number_text(e["closed_loop_cost"]),
+                     "-" if ratio is None else number_text(ratio),
                      "never" if e["steps_to_1e-3"] is None else str(e["steps_to_1e-3"]),
                      "-" if solve is None else f"{solve * 1e6:.0f}"])
     return rows
@@ -138,8 +139,3 @@ COMPARISON_LEGEND = ("verdict: ok, or the failures found (see each run's summary
                      "centralised one; k to 1e-3: first k with ||x(k)||_inf < 1e-3; QP us: median solve time")
 
 
-def comparison_markdown(data: dict) -> str:
-    """The comparison table in Markdown."""
-    lines = ["| " + " | ".join(COMPARISON_HEADER) + " |", "|" + "---|" * len(COMPARISON_HEADER)]
-    lines += ["| " + " | ".join(row) + " |" for row in comparison_rows(data)]
-    return "\n".join(lines)

@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
+from dmpc.core.qp_status import SOLVED
 from dmpc.evaluation.compare import CONVERGED
 from dmpc.methods import method_spec
-from dmpc.qp_status import SOLVED
 from dmpc.runtime.central_loop import CentralLoop
 from dmpc.runtime.direct import DirectLoop
-from dmpc.runtime.setup import prepare
+from dmpc.setup import prepare
 
 DIVERGED = 1e3
 ROA_FILE = "roa.json"
@@ -104,7 +104,8 @@ def horizon_loop(scenario, method: str, N: int, design_data: dict):
     if not method_spec(method).distributed:
         return CentralLoop(prepared.system, prepared.design), prepared.protocol.steps
 
-    return (DirectLoop(prepared.system, prepared.design, prepared.protocol, method, prepared.coupling),
+    return (DirectLoop(prepared.system, prepared.design, prepared.protocol, method_spec(method).name,
+                       prepared.coupling),
             prepared.protocol.steps)
 
 

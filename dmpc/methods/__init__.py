@@ -16,18 +16,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dmpc.design import Design
-from dmpc.methods.policy import BoxPolicy, EllipsoidPolicy, TerminalPolicy
-from dmpc.system import CoupledSystem
+import numpy as np
 
-DEFAULT_METHOD = "tv-box"
+from dmpc.core.steps import DEFAULT_METHOD as DEFAULT_METHOD  # the names live with the other run options
+from dmpc.core.steps import METHOD_NAMES, Method
+from dmpc.core.system import CoupledSystem, LinearSet
+from dmpc.methods.policy import BoxPolicy, EllipsoidPolicy, TerminalPolicy
+from dmpc.offline import ControllerDesign
 
 
 @dataclass(frozen=True)
 class MethodSpec:
     """One method: its name, a one-line description, and whether agents run it."""
 
-    name: str
+    name: Method
     description: str
     distributed: bool = True
 
@@ -41,7 +43,7 @@ METHODS: dict[str, MethodSpec] = {m.name: m for m in (
     MethodSpec("centralized", "one QP over the whole system with Omega z(N) <= 1: the optimality reference",
                distributed=False),
 )}
-METHOD_NAMES: tuple[str, ...] = tuple(METHODS)
+assert METHOD_NAMES == tuple(METHODS), "every method has a spec, in the same order"
 
 
 def method_spec(name: str) -> MethodSpec:
@@ -52,7 +54,7 @@ def method_spec(name: str) -> MethodSpec:
         raise ValueError(f"unknown method {name!r} (expected one of: {', '.join(METHODS)})") from None
 
 
-def terminal_policy(name: str, system: CoupledSystem, design: Design) -> TerminalPolicy:
+def terminal_policy(name: str, system: CoupledSystem, design: ControllerDesign) -> TerminalPolicy:
     """The :class:`~dmpc.methods.policy.TerminalPolicy` of a distributed method.
 
     Raises
@@ -70,3 +72,17 @@ def terminal_policy(name: str, system: CoupledSystem, design: Design) -> Termina
 
         return BoxPolicy(system, design, name, time_varying=True, optimizer=BoxOptimizer(system, design))
     return EllipsoidPolicy(system, design, name, adaptive=name == "ellipsoid-adaptive")
+
+
+def initial_terminal_set(name: str, system: CoupledSystem, design: ControllerDesign) -> LinearSet:
+    """The method's terminal constraint at k = 0 on the global state (rows on z(N), dimension n).
+
+    The box methods impose the box around alpha0; ``tv-box-opt`` and ``centralized`` may use all
+    of X^f; the ellipsoid methods their inscribed polytopes.
+    """
+    if name in ("tv-box-opt", "centralized"):
+        omega = design.terminal.omega
+        return LinearSet.polytope(omega, np.ones(omega.shape[0]))
+    policy = terminal_policy(name, system, design)
+    T, lower, upper = policy.joint_terminal(policy.initial(system.x0))
+    return LinearSet(T, lower, upper)

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dmpc.design import Design
-from dmpc.system import CoupledSystem
+from dmpc.core.system import CoupledSystem
+from dmpc.offline import ControllerDesign
 
 
 @dataclass(frozen=True)
@@ -37,16 +37,16 @@ class BoxOptimizer:
     Parameters
     ----------
     system : CoupledSystem
-    design : Design
+    design : ControllerDesign
     """
 
-    def __init__(self, system: CoupledSystem, design: Design) -> None:
+    def __init__(self, system: CoupledSystem, design: ControllerDesign) -> None:
         self._design = design
         self._system = system
         self._qp = None
 
     def __call__(self, x0: np.ndarray) -> InitialBox:
-        from dmpc.central_qp import CentralQP  # lazy: agent processes never need it
+        from dmpc.core.central_qp import CentralQP  # lazy: agent processes never need it
 
         d = self._design
         if self._qp is None:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmpc.system import CoupledSystem, block_diag
+from dmpc.core.system import CoupledSystem, block_diag
 
 
 def dual_norms(omega: np.ndarray, system: CoupledSystem, P: list[np.ndarray]) -> np.ndarray:

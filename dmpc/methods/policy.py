@@ -19,11 +19,11 @@ from functools import cached_property
 
 import numpy as np
 
-from dmpc.design import Design
+from dmpc.core.system import CoupledSystem, block_diag
 from dmpc.methods.inscribed import DEFAULT_FACETS, inscribed_rows
 from dmpc.methods.levels import dual_norms, fit_levels, level_increments, static_level
 from dmpc.methods.terminal_rows import AgentTerminal, BoxTerminal, InscribedTerminal
-from dmpc.system import CoupledSystem, block_diag
+from dmpc.offline import ControllerDesign
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class TerminalPolicy(ABC):
 
     name: str
 
-    def __init__(self, system: CoupledSystem, design: Design) -> None:
+    def __init__(self, system: CoupledSystem, design: ControllerDesign) -> None:
         self.system = system
         self.design = design
 
@@ -105,7 +105,7 @@ class BoxPolicy(TerminalPolicy):
     x(0); None keeps the design's (the scenario's ``terminal``).
     """
 
-    def __init__(self, system: CoupledSystem, design: Design, name: str, time_varying: bool,
+    def __init__(self, system: CoupledSystem, design: ControllerDesign, name: str, time_varying: bool,
                  optimizer=None) -> None:
         super().__init__(system, design)
         self.name = name
@@ -167,7 +167,7 @@ class EllipsoidPolicy(TerminalPolicy):
         Sides of the polygon inscribed in each two-dimensional ellipse.
     """
 
-    def __init__(self, system: CoupledSystem, design: Design, name: str, adaptive: bool,
+    def __init__(self, system: CoupledSystem, design: ControllerDesign, name: str, adaptive: bool,
                  facets: int = DEFAULT_FACETS) -> None:
         super().__init__(system, design)
         self.name = name

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dmpc.qp_status import SOLVED
-from dmpc.steps import StepRecord
-from dmpc.system import CoupledSystem
+from dmpc.core.qp_status import SOLVED, QPStatus
+from dmpc.core.steps import StepRecord
+from dmpc.core.system import CoupledSystem
 
 BLOCK_ROWS = 4096
 """Rows copied at a time when ``trajectory.npz`` is written."""
@@ -29,6 +29,8 @@ FINAL = ("x", "alpha", "beta", "S", "r")
 """Columns that get one more row at the end: the state (terminal set) after the last step."""
 _INT = {"qp_iterations", "rounds"}
 _BOOL = {"fallback"}
+_QP_FAILED = frozenset(status.value for status in QPStatus) - SOLVED
+"""Statuses of a QP that ran and gave no plan (the others without a plan: missed, lost)."""
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,10 @@ class StepTally:
     steps : int
     all_solved : bool
         Every agent's status of every step was a solved one.
+    qp_failed : int
+        Agent-steps whose QP gave no plan (infeasible, max_iter, ...).
+    plans_missing : int
+        Agent-steps without a plan in time (missed or lost): no QP status to judge.
     notes : list of str
         ``k=K: note`` for the steps that have a note (events, not steps: bounded by what happens).
     reasons : list of str
@@ -60,6 +66,8 @@ class StepTally:
 
     steps: int = 0
     all_solved: bool = True
+    qp_failed: int = 0
+    plans_missing: int = 0
     notes: list[str] = field(default_factory=list)
     reasons: list[str] = field(default_factory=lambda: [""])
 
@@ -132,6 +140,8 @@ class StepColumns:
         t = self.tally
         t.steps += 1
         t.all_solved = t.all_solved and all(s in SOLVED for s in rec.status)
+        t.qp_failed += sum(s in _QP_FAILED for s in rec.status)
+        t.plans_missing += sum(s not in SOLVED and s not in _QP_FAILED for s in rec.status)
         if rec.note:
             t.notes.append(rec.note if rec.note.startswith("k=") else f"k={rec.k}: {rec.note}")
         self.last = rec

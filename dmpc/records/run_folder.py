@@ -14,18 +14,19 @@ from pathlib import Path
 import numpy as np
 import orjson
 
+from dmpc.core.errors import DmpcError, InputError
+from dmpc.core.steps import StepRecord
+from dmpc.core.system import CoupledSystem
 from dmpc.records.columns import StepColumns, StepTally, write_npz
 from dmpc.records.files import ROWS, STEP_LOG, SUMMARY, TRAJECTORY
 from dmpc.records.verdict import RunLimits, judge, state_bound_excess
-from dmpc.steps import StepRecord
-from dmpc.system import CoupledSystem
 
 
-class RunFolderError(Exception):
+class RunFolderError(InputError):
     """The folder cannot be used for a new run."""
 
 
-class RecordWriteError(RunFolderError):
+class RecordWriteError(DmpcError):
     """A record could not be written during or at the end of a run (disk full, read-only, ...)."""
 
 
@@ -171,11 +172,12 @@ class RunFolder:
             except OSError:
                 pass
 
-    def finish(self, extra: dict | None = None, limits: RunLimits | None = None) -> dict:
+    def finish(self, extra: dict | None = None, limits: RunLimits | None = None, labels: dict | None = None) -> dict:
         """Write ``trajectory.npz`` and ``summary.json`` from the recorded steps; returns the summary.
 
         ``limits`` (the planned steps and Jacobi caps) feed the verdict; without them the run is
-        judged as planned to the steps it has. RunFolderError if a file cannot be written.
+        judged as planned to the steps it has; ``labels`` name the states and inputs in its
+        messages. RunFolderError if a file cannot be written.
         """
         self.close()
         arrays = self.columns.arrays()
@@ -185,7 +187,7 @@ class RunFolder:
             raise write_error(exc, self.path / TRAJECTORY) from None
         extra = dict(extra or {})
         summary = summarise(self.system, self.columns.tally, arrays, limits or RunLimits(steps=self.steps),
-                            extra.get("inputs_refused"))
+                            extra.get("inputs_refused"), labels)
         summary.update(extra)
         try:
             write_json(self.path / SUMMARY, summary)
@@ -269,11 +271,13 @@ def stage_cost(system: CoupledSystem, x: np.ndarray, u: np.ndarray) -> float:
 
 
 def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays: dict[str, np.ndarray],
-              limits: RunLimits | None = None, inputs_refused: dict[str, int] | None = None) -> dict:
+              limits: RunLimits | None = None, inputs_refused: dict[str, int] | None = None,
+              labels: dict | None = None) -> dict:
     """The content of summary.json, with the run's verdict (:mod:`dmpc.records.verdict`).
 
     ``steps`` is the tally of a :class:`~dmpc.records.columns.StepColumns`, or the step records
-    themselves (then ``arrays`` may come from :func:`trajectory_arrays`).
+    themselves (then ``arrays`` may come from :func:`trajectory_arrays`). ``labels`` are the
+    scenario's names of states and inputs for the verdict's messages (:func:`~dmpc.records.verdict.judge`).
     """
     if not isinstance(steps, StepTally):
         columns = _columns_of(system, steps)
@@ -294,13 +298,15 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
     finite_solve = solve[np.isfinite(solve)]
     step_time = arrays["step_time"][np.isfinite(arrays["step_time"])]
     notes = steps.notes
-    verdict = judge(system, arrays, notes, limits or RunLimits(steps=K), inputs_refused, steps.reasons)
+    verdict = judge(system, arrays, notes, limits or RunLimits(steps=K), inputs_refused, steps.reasons, labels)
     return {
         "verdict": verdict.word,
         "failures": [f.to_json() for f in verdict.failures],
         "warnings": [f.to_json() for f in verdict.warnings],
         "steps": K,
         "feasible": bool(K > 0 and steps.all_solved),
+        "qp_failed": steps.qp_failed,
+        "plans_missing": steps.plans_missing,
         "fallbacks": int(arrays["fallback"].sum()),
         "fallbacks_per_agent": dict(zip([s.name for s in system.subsystems], fallbacks_per_agent)),
         "fallback_steps": [[int(k), system.subsystems[i].name] for k, i in zip(*np.nonzero(arrays["fallback"]))],

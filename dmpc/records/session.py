@@ -6,16 +6,16 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from dmpc.console import stderr_console
+from dmpc.core.quantities import named_labels
+from dmpc.core.steps import StepRecord
+from dmpc.prepared import Prepared
+from dmpc.prepared.bundle import bundle_json
 from dmpc.records.files import BUNDLE, DESIGN, DISTURBANCE, SCENARIO
 from dmpc.records.run_folder import RecordWriteError, RunFolder
 from dmpc.records.verdict import RunLimits
-from dmpc.run_bundle import bundle_json
-from dmpc.run_spec import Prepared
 from dmpc.scenario import dump_resolved
-from dmpc.steps import StepRecord
+from dmpc.terminal.progress import ProgressBar
 
 
 class RunRecorder:
@@ -53,15 +53,9 @@ class RunRecorder:
         if prepared.plant.disturbance is not None:
             np.save(self.folder.path / DISTURBANCE, prepared.plant.disturbance)
         self._started = time.monotonic()
-        self._progress = None
-        self._task = None
+        self._progress = ProgressBar("steps", prepared.protocol.steps, fields={"J": "-"}) if show_progress else None
         self.summary: dict | None = None
         self._write_failed = False
-        if show_progress:
-            self._progress = Progress(TextColumn("[bold]steps"), BarColumn(), MofNCompleteColumn(),
-                                      TextColumn("J={task.fields[J]}"), TimeElapsedColumn(),
-                                      console=stderr_console(), transient=True)
-            self._task = self._progress.add_task("run", total=prepared.protocol.steps, J="-")
 
     def __enter__(self) -> "RunRecorder":
         if self._progress is not None:
@@ -79,7 +73,7 @@ class RunRecorder:
             self._write_failed = True
             raise
         if self._progress is not None:
-            self._progress.update(self._task, advance=1, J=f"{record.J:.4g}")
+            self._progress.advance(J=f"{record.J:.4g}")
 
     def complete(self, **extra) -> dict:
         """Write the arrays and the summary; returns the summary (RecordWriteError if it cannot)."""
@@ -92,10 +86,11 @@ class RunRecorder:
                 "duplicates": 0, "inputs_refused": {}, "agents": {}, "plant": self.prepared.plant.describe()}
         info.update({k: v for k, v in extra.items() if v is not None})
         p = self.prepared.protocol
-        limits = RunLimits(steps=p.steps, initial_iterations=p.initial_iterations, iterations=p.iterations,
+        limits = RunLimits(steps=p.steps, initial_rounds=p.initial_rounds, rounds=p.rounds,
                            initial_tolerance=p.initial_tolerance, tolerance=p.tolerance,
                            stopped=str(info.get("failure") or info.get("aborted") or ""))
-        self.summary = self.folder.finish(info, limits)
+        scenario = self.prepared.scenario
+        self.summary = self.folder.finish(info, limits, named_labels(scenario) if scenario is not None else None)
         return self.summary
 
     @property

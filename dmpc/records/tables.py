@@ -1,12 +1,14 @@
 """Human-readable reports: the design and the run summary."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from rich.table import Table
 from rich.text import Text
 
-from dmpc.console import stdout_console
-from dmpc.run_spec import Prepared
+from dmpc.prepared import Prepared
+from dmpc.terminal.console import stdout_console
 
 
 def design_report(prepared: Prepared) -> Table:
@@ -90,6 +92,66 @@ def horizon_text(design) -> str:
     return str(design.horizon)
 
 
+def dropped_text(summary: dict) -> str:
+    """The messages the coordinator dropped as invalid, per sender and reason ('' if none): a state
+    dropped once and then sent again valid leaves the run ok, and this is where it shows."""
+    counts = summary.get("rejected") or {}
+    if not counts:
+        return ""
+    senders = ", ".join(f"{n} from {sender}" for sender, n in sorted(counts.items()))
+    reasons = summary.get("rejected_reasons") or {}
+    why = "; ".join(f"{reason} ({n} times)" if n > 1 else reason for reason, n in reasons.items())
+    return f"{senders} ({why})" if why else senders
+
+
+SHOWN_COSTS = 4
+"""J(0), J(1), ... shown in the run summary."""
+FIXED_RANGE = (1e-3, 1e6)
+"""Magnitudes printed with fixed decimals; outside it (a diverged run's cost) in scientific notation."""
+
+
+def number_text(value, decimals: int = 4) -> str:
+    """``93.6838``; ``2.5873e+17`` or ``1.2000e-05`` outside ``FIXED_RANGE``; ``n/a`` for a missing value."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    size = abs(value)
+    if size == 0 or not math.isfinite(size) or FIXED_RANGE[0] <= size < FIXED_RANGE[1]:
+        return f"{value:.{decimals}f}"
+    return f"{value:.{decimals}e}"
+
+
+def first_costs(J: list) -> tuple[str, str]:
+    """The row of J(0), J(1), ... (label, values): each in its place, ``n/a`` where the step has no
+    J (an agent's plan was lost or late), so that a value never stands under another step's label."""
+    shown = list(J[:SHOWN_COSTS])
+    if not shown:
+        return "J(k)", "none (no step completed)"
+    label = "J(0)" if len(shown) == 1 else f"J(0..{len(shown) - 1})"
+    return label, ", ".join(number_text(j, 2) for j in shown)
+
+
+def feasibility_text(summary: dict) -> str:
+    """Whether every QP was solved, and if not what happened instead: QPs that failed, or plans
+    missed or lost (which are not QP failures: nothing is known of those QPs)."""
+    if summary["feasible"]:
+        return "yes"
+    if not summary.get("steps"):
+        return "no step completed"
+    failed, missing = summary.get("qp_failed"), summary.get("plans_missing")
+    if failed is None or missing is None:  # a summary written before these counts existed
+        return "no"
+    parts = []
+    if failed:
+        parts.append(f"{failed} QP solve{'s' if failed > 1 else ''} gave no plan")
+    if missing:
+        parts.append(f"{missing} plan{'s' if missing > 1 else ''} missed or lost (fallbacks)")
+    if not parts:
+        return "no"
+    if not failed:
+        return "no QP failed; " + parts[0]
+    return "no: " + "; ".join(parts)
+
+
 def print_summary(summary: dict, out) -> None:
     """One screen: the verdict and its reasons, then feasibility, fallbacks, cost, convergence,
     timing, and where the records are."""
@@ -105,11 +167,11 @@ def print_summary(summary: dict, out) -> None:
     table.add_row("steps", str(summary["steps"]))
     if summary.get("horizon") is not None:
         table.add_row("horizon N", f"{summary['horizon']}" + (" (auto)" if summary.get("horizon_auto") else ""))
-    table.add_row("every QP feasible", "yes" if summary["feasible"] else "no")
+    table.add_row("every QP feasible", feasibility_text(summary))
     table.add_row("fallbacks", str(summary["fallbacks"]))
     table.add_row("max |u|", f"{summary['max_abs_u']:.4g}")
-    table.add_row("J(0..3)", ", ".join(f"{j:.2f}" for j in J[:4] if j is not None))
-    table.add_row("closed-loop cost", f"{summary['closed_loop_cost']:.4f}")
+    table.add_row(*first_costs(J))
+    table.add_row("closed-loop cost", number_text(summary["closed_loop_cost"]))
     table.add_row("||x(end)||_inf", f"{summary['final_state_norm_inf']:.3g}")
     if summary.get("solve_time_median_s") is not None:
         table.add_row("QP solve median", f"{summary['solve_time_median_s'] * 1e6:.0f} us")
@@ -121,6 +183,9 @@ def print_summary(summary: dict, out) -> None:
     if summary.get("security"):
         table.add_row("security", "TLS with mutual authentication, access control "
                       + ("on" if summary["security"].get("access_control") else "off"))
+    dropped = dropped_text(summary)
+    if dropped:
+        table.add_row("dropped by the coordinator", dropped)
     if summary.get("aborted"):
         table.add_row("aborted", str(summary["aborted"]))
     if summary.get("failure"):

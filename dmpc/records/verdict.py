@@ -8,8 +8,8 @@ kind                      class     when
 ========================  ========  ==============================================================
 ``state-violated``        failure   a state left X_i by more than ``BOUND_TOL`` (per subsystem)
 ``input-violated``        failure   an applied input left U_i by more than ``BOUND_TOL``
-``infeasible-start``      failure   no feasible plan at k = 0 (a QP failed there; the note says
-                                    whether the centralised problem was infeasible too)
+``infeasible-start``      failure   no feasible plan at k = 0 (a QP failed there; the message says
+                                    why the centralised QP gave no plan to start from either)
 ``infeasible``            failure   steps k > 0 where an agent's QP failed (fallback applied)
 ``diverged``              failure   a non-finite state, or ||x(k)||_inf > ``DIVERGENCE_FACTOR``
                                     times the reference size (below)
@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dmpc.system import CoupledSystem, LinearSet
+from dmpc.core.steps import NO_SEED
+from dmpc.core.system import CoupledSystem, LinearSet
 
 BOUND_TOL = 1e-6
 """A bound counts as broken when it is exceeded by more than BOUND_TOL * max(1, |bound|)."""
@@ -96,7 +97,7 @@ class RunLimits:
     ----------
     steps : int
         Steps planned.
-    initial_iterations, iterations : int
+    initial_rounds, rounds : int
         Jacobi caps at k = 0 and after.
     initial_tolerance, tolerance : float
         Jacobi tolerances at k = 0 and after.
@@ -105,8 +106,8 @@ class RunLimits:
     """
 
     steps: int
-    initial_iterations: int = 200
-    iterations: int = 1
+    initial_rounds: int = 200
+    rounds: int = 1
     initial_tolerance: float = 1e-9
     tolerance: float = 1e-9
     stopped: str = ""
@@ -142,7 +143,7 @@ def state_bound_excess(system: CoupledSystem, x: np.ndarray) -> dict[str, float 
 
 
 def _bound_findings(system: CoupledSystem, values: np.ndarray, kind: str, what: str, sets: list[LinearSet | None],
-                    slices: list[slice]) -> list[Finding]:
+                    slices: list[slice], labels: dict[str, tuple[str, ...]]) -> list[Finding]:
     found = []
     for sub, lset, sl in zip(system.subsystems, sets, slices):
         if lset is None or values.shape[0] == 0:
@@ -152,23 +153,23 @@ def _bound_findings(system: CoupledSystem, values: np.ndarray, kind: str, what: 
         if bad.size:
             worst = float(np.max(excess[bad]))
             steps = [int(k) for k in bad]
-            where = _worst_row(lset, values[int(bad[np.argmax(excess[bad])]), sl], what)
+            where = _worst_row(lset, values[int(bad[np.argmax(excess[bad])]), sl], what, labels.get(sub.name))
             found.append(Finding(kind, f"subsystem {sub.name}: {what} outside its bounds by up to {worst:.4g} "
                                        f"({where}) at {len(steps)} step(s) (k = {_steps_text(steps)})",
                                  sub.name, steps, worst))
     return found
 
 
-def _worst_row(linear_set: LinearSet, value: np.ndarray, what: str) -> str:
-    """Which bound is broken most at ``value``: a component of a box (x1, x2, ... / u1, ...), or
-    a row of a polytope."""
+def _worst_row(linear_set: LinearSet, value: np.ndarray, what: str, labels: tuple[str, ...] | None = None) -> str:
+    """Which bound is broken most at ``value``: a component of a box (its label from the scenario,
+    ``Ta [K]``, else x1, x2, ... / u1, ...), or a row of a polytope."""
     Hv = linear_set.H @ value
     with np.errstate(invalid="ignore"):
         over = np.where(np.isfinite(linear_set.upper), Hv - linear_set.upper, -np.inf)
         under = np.where(np.isfinite(linear_set.lower), linear_set.lower - Hv, -np.inf)
     row = int(np.argmax(np.maximum(over, under)))
     if linear_set.is_box:
-        return f"component {'x' if what == 'state' else 'u'}{row + 1}"
+        return labels[row] if labels else f"component {'x' if what == 'state' else 'u'}{row + 1}"
     return f"row {row} of the set"
 
 
@@ -185,7 +186,8 @@ def reference_size(system: CoupledSystem, x0: np.ndarray) -> float:
 
 
 def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str], limits: RunLimits,
-          inputs_refused: dict[str, int] | None = None, reasons: list[str] | tuple[str, ...] = ("",)) -> Verdict:
+          inputs_refused: dict[str, int] | None = None, reasons: list[str] | tuple[str, ...] = ("",),
+          labels: dict[str, dict[str, tuple[str, ...]]] | None = None) -> Verdict:
     """The verdict of a run from its arrays (see :func:`dmpc.records.run_folder.trajectory_arrays`).
 
     Parameters
@@ -201,6 +203,9 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
     inputs_refused : dict name -> count, optional
     reasons : sequence of str
         ``reasons[0] == ""``; ``qp <status>`` for a failed QP, ``missed``, ``lost`` or a refusal.
+    labels : dict, optional
+        ``{"state": {subsystem: labels}, "input": {...}}``: the names and units the scenario gives
+        (:func:`dmpc.core.quantities.named_labels`), used instead of ``component x1`` in the messages.
     """
     x, u = arrays["x"], arrays["u"]
     K = u.shape[0]
@@ -208,10 +213,11 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
     failures: list[Finding] = []
     warnings: list[Finding] = []
 
+    labels = labels or {}
     failures += _bound_findings(system, x, "state-violated", "state", [s.state_set for s in system.subsystems],
-                                [system.xs(i) for i in range(system.M)])
+                                [system.xs(i) for i in range(system.M)], labels.get("state", {}))
     failures += _bound_findings(system, u, "input-violated", "input", [s.input_set for s in system.subsystems],
-                                [system.us(i) for i in range(system.M)])
+                                [system.us(i) for i in range(system.M)], labels.get("input", {}))
 
     codes = np.asarray(arrays.get("fallback_code", np.zeros((K, system.M), int)))
     qp_failed: dict[int, list[int]] = {}  # agent -> steps where its QP failed
@@ -221,8 +227,8 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
         target.setdefault(int(i), []).append(int(k))
     start_failed = sorted(names[i] for i, steps in qp_failed.items() if steps and steps[0] == 0)
     if start_failed:
-        central = next((n for n in notes if n.startswith("k=0:") and "centralised QP is" in n), "")
-        why = " (the centralised QP is infeasible too)" if central else ""
+        seed = next((n for n in notes if n.startswith("k=0:") and NO_SEED in n), "")
+        why = f"; {NO_SEED}{seed.split(NO_SEED, 1)[1]}" if seed else ""
         failures.append(Finding("infeasible-start", f"no feasible plan at k = 0 for subsystem(s) "
                                                     f"{', '.join(start_failed)}{why}", steps=[0],
                                 amount=float(len(start_failed))))
@@ -281,8 +287,8 @@ def _capped_steps(arrays: dict[str, np.ndarray], limits: RunLimits) -> list[int]
     rounds, change = arrays["rounds"], arrays["max_change"]
     capped = []
     for k in range(rounds.shape[0]):
-        cap, tol = ((limits.initial_iterations, limits.initial_tolerance) if k == 0
-                    else (limits.iterations, limits.tolerance))
+        cap, tol = ((limits.initial_rounds, limits.initial_tolerance) if k == 0
+                    else (limits.rounds, limits.tolerance))
         if cap > 1 and rounds[k] >= cap and not (change[k] < tol):
             capped.append(k)
     return capped

@@ -1,7 +1,7 @@
 """The ``centralized`` method: one QP over the whole system per step, no agents, no bus.
 
 Problem (9) of the paper with X^f itself as terminal set (Omega z(N) <= 1), on the shared MPC QP
-(dmpc.central_qp.CentralQP). It is the optimality reference the distributed methods are
+(dmpc.core.central_qp.CentralQP). It is the optimality reference the distributed methods are
 compared with. Each step becomes a StepRecord like a distributed step, so the run folder is the
 same: the plan is split into the subsystems' parts, J_i are their own terms, and every agent's
 status, solve time and iteration count is the central QP's. An infeasible step applies the
@@ -16,13 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dmpc.central_qp import CentralQP
-from dmpc.design import Design
-from dmpc.mpc_qp import plan_cost
+from dmpc.core.central_qp import CentralQP
+from dmpc.core.mpc_qp import plan_cost
+from dmpc.core.steps import StepRecord
+from dmpc.core.system import CoupledSystem, project_onto
+from dmpc.core.trajectories import Plan, candidate_plan
+from dmpc.offline import ControllerDesign
 from dmpc.plant.dynamics import Plant
-from dmpc.steps import StepRecord
-from dmpc.system import CoupledSystem, project_onto
-from dmpc.trajectories import Plan, candidate_plan
 
 
 @dataclass
@@ -39,12 +39,12 @@ class CentralLoop:
     Parameters
     ----------
     system : CoupledSystem
-    design : Design
+    design : ControllerDesign
     settings : dict, optional
         OSQP settings.
     """
 
-    def __init__(self, system: CoupledSystem, design: Design, settings: dict | None = None) -> None:
+    def __init__(self, system: CoupledSystem, design: ControllerDesign, settings: dict | None = None) -> None:
         self.system = system
         self.design = design
         self.N = design.horizon

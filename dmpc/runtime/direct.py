@@ -17,13 +17,13 @@ import numpy as np
 
 from dmpc.agents.controller import AgentController
 from dmpc.bus.messages import PlanMessage, Release
-from dmpc.design import Design
-from dmpc.methods import terminal_policy
-from dmpc.plant.barrier import Coordinator, SendRelease, StepCompleted
+from dmpc.coordinator.barrier import Coordinator, SendRelease, StepCompleted
+from dmpc.core.steps import Coupling, ProtocolOptions, StepRecord
+from dmpc.core.system import CoupledSystem
+from dmpc.core.trajectories import Plan
+from dmpc.methods import Method, terminal_policy
+from dmpc.offline import ControllerDesign
 from dmpc.plant.dynamics import Plant
-from dmpc.steps import ProtocolOptions, StepRecord
-from dmpc.system import CoupledSystem
-from dmpc.trajectories import Plan
 
 RUN_ID = "direct"
 
@@ -34,15 +34,15 @@ class DirectLoop:
     Parameters
     ----------
     system : CoupledSystem
-    design : Design
+    design : ControllerDesign
     protocol : ProtocolOptions
     method : str
         A distributed method of :mod:`dmpc.methods`.
     coupling : {"feedforward", "nominal"}
     """
 
-    def __init__(self, system: CoupledSystem, design: Design, protocol: ProtocolOptions, method: str,
-                 coupling: str = "feedforward") -> None:
+    def __init__(self, system: CoupledSystem, design: ControllerDesign, protocol: ProtocolOptions, method: Method,
+                 coupling: Coupling = "feedforward") -> None:
         self.system = system
         self.design = design
         self.protocol = protocol
@@ -90,5 +90,5 @@ class DirectLoop:
             else:
                 plans[j] = archive[(j, *ref)]
         msg = self.controllers[i].answer(release, plans, RUN_ID)
-        archive[(i, release.k, release.iteration)] = Plan(release.k, release.iteration, msg.z, msg.v)
+        archive[(i, release.k, release.round)] = Plan(release.k, release.round, msg.z, msg.v)
         return msg

@@ -33,22 +33,26 @@ import threading
 import time
 from collections.abc import Callable
 
-from dmpc.exit_codes import EXIT_INTERRUPTED
-from dmpc.runtime.signals import sigterm_as_interrupt
+from dmpc.core.errors import DmpcError
+from dmpc.runtime.signals import interrupts_deferred, sigterm_as_interrupt
+from dmpc.terminal.exit_codes import EXIT_INTERRUPTED
 
-PRELOAD = ("dmpc.agents.process", "dmpc.bus.zenoh_bus", "dmpc.run_bundle")
+PRELOAD = ("dmpc.agents.process", "dmpc.bus.zenoh_bus", "dmpc.prepared.bundle")
 """Modules the server imports before forking: everything ``dmpc agent`` needs (with the command
-line, which :mod:`dmpc.forkserver_entry` imports and hands to :func:`serve`)."""
+line, which :mod:`dmpc.cli.forkserver` imports and hands to :func:`serve`)."""
 READY_TIMEOUT = 60.0
 """Seconds the launcher waits for the server's imports before starting agents with exec instead."""
 REAP_EVERY = 0.02
 """Seconds between the server's checks for exited agents (the latency of an exit code)."""
+STRAY_GRACE = 2.0
+"""Seconds the server gives its agents to end after SIGTERM once the launcher has closed its end,
+before it kills them."""
 _MAX_MESSAGE = 1 << 20
 _PR_SET_PDEATHSIG = 1
 _PR_SET_NAME = 15
 
 
-class ForkServerError(RuntimeError):
+class ForkServerError(DmpcError, RuntimeError):
     """The fork server could not start or answer."""
 
 
@@ -83,17 +87,23 @@ class ForkServer:
         self._sock = mine
         self.exits: dict[int, int] = {}
         self._closed = False
+        self.proc: subprocess.Popen | None = None
         with open(log, "ab") as out:
             try:
-                self.proc = subprocess.Popen([sys.executable, "-m", "dmpc.forkserver_entry", str(theirs.fileno())],
-                                             stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
-                                             pass_fds=[theirs.fileno()], preexec_fn=_die_with_parent, close_fds=True)
+                with interrupts_deferred():
+                    self.proc = subprocess.Popen([sys.executable, "-m", "dmpc.cli.forkserver",
+                                                  str(theirs.fileno())], stdin=subprocess.DEVNULL, stdout=out,
+                                                 stderr=subprocess.STDOUT, env=env, pass_fds=[theirs.fileno()],
+                                                 preexec_fn=_die_with_parent, close_fds=True)
+            except KeyboardInterrupt:
+                self.close(kill=True)
+                raise
             finally:
                 theirs.close()
         try:
             reply = self._receive(READY_TIMEOUT, lambda m: "ready" in m)
-        except ForkServerError:
-            self.close()
+        except BaseException:  # no answer, or interrupted while it imports: it has forked nothing yet
+            self.close(kill=True)
             raise
         if not reply.get("ready"):
             self.close()
@@ -148,17 +158,16 @@ class ForkServer:
         sender = threading.Thread(target=send_all, name="dmpc-fork-requests", daemon=True)
         sender.start()
         forked: list[ForkedProcess | None] = []
-        try:
-            for _ in requests:
-                try:
-                    reply = self._receive(READY_TIMEOUT, lambda m: "pid" in m or "error" in m)
-                except ForkServerError:
-                    if not forked:
-                        raise ForkServerError(f"the fork server is gone ({failed[0] if failed else 'no answer'})") from None
-                    reply = {"error": "gone"}
-                forked.append(ForkedProcess(self, int(reply["pid"])) if "pid" in reply else None)
-        finally:
-            sender.join(READY_TIMEOUT)
+        # on an error or an interrupt the sender is not waited for: it ends when the socket closes
+        for _ in requests:
+            try:
+                reply = self._receive(READY_TIMEOUT, lambda m: "pid" in m or "error" in m)
+            except ForkServerError:
+                if not forked:
+                    raise ForkServerError(f"the fork server is gone ({failed[0] if failed else 'no answer'})") from None
+                reply = {"error": "gone"}
+            forked.append(ForkedProcess(self, int(reply["pid"])) if "pid" in reply else None)
+        sender.join(READY_TIMEOUT)
         return forked
 
     def collect(self) -> None:
@@ -174,15 +183,21 @@ class ForkServer:
     def alive(self) -> bool:
         return not self._closed and self.proc.poll() is None
 
-    def close(self) -> None:
-        """End the server (its agents must have been stopped); idempotent."""
+    def close(self, kill: bool = False) -> None:
+        """End the server; idempotent. Agents still running (forked while the launcher was
+        interrupted, before it learnt their pids) are stopped by the server
+        (:data:`STRAY_GRACE`); ``kill``: kill the server at once (it must have forked nothing)."""
         self._closed = True
         try:
             self._sock.close()
         except OSError:
             pass
+        if self.proc is None:
+            return
+        if kill and self.proc.poll() is None:
+            self.proc.kill()
         try:
-            self.proc.wait(timeout=2)
+            self.proc.wait(timeout=STRAY_GRACE + 2)
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
@@ -217,9 +232,6 @@ class ForkedProcess:
         if self.poll() is None:
             os.kill(self.pid, sig)
 
-    def terminate(self) -> None:
-        self.send_signal(signal.SIGTERM)
-
     def kill(self) -> None:
         self.send_signal(signal.SIGKILL)
 
@@ -253,7 +265,10 @@ def serve(fd: int, main: Callable[[], None], prepare: Callable[[], object] | Non
     except Exception as exc:  # noqa: BLE001 - reported to the launcher, which falls back to exec
         sock.send(json.dumps({"ready": False, "error": f"{type(exc).__name__}: {exc}"}).encode())
         return
-    sock.send(json.dumps({"ready": True}).encode())
+    try:
+        sock.send(json.dumps({"ready": True}).encode())
+    except OSError:
+        return  # the launcher is gone (interrupted while this server imported)
     children: set[int] = set()
     selector = selectors.DefaultSelector()
     selector.register(sock, selectors.EVENT_READ)
@@ -263,8 +278,29 @@ def serve(fd: int, main: Callable[[], None], prepare: Callable[[], object] | Non
         _reap(sock, children)
         if ready:
             open_ = _fork_burst(sock, children, main)
-    while children:  # the launcher is gone: wait for the agents it stopped
+    _stop_strays(sock, children)
+
+
+def _stop_strays(sock: socket.socket, children: set[int]) -> None:
+    """The launcher has closed its end, after stopping every agent it knew of: stop the others
+    (forked while it was interrupted, their pids never read) with SIGTERM, SIGKILL after
+    :data:`STRAY_GRACE` s, and reap them all."""
+    _signal_all(children, signal.SIGTERM)
+    deadline = time.monotonic() + STRAY_GRACE
+    while children and time.monotonic() < deadline:
+        _reap(sock, children)
+        time.sleep(REAP_EVERY)
+    _signal_all(children, signal.SIGKILL)
+    while children:
         _reap(sock, children, block=True)
+
+
+def _signal_all(pids: set[int], sig: int) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, sig)
+        except ProcessLookupError:
+            pass
 
 
 def _fork_burst(sock: socket.socket, children: set[int], main: Callable[[], None]) -> bool:

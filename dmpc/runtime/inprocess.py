@@ -8,19 +8,19 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from dmpc.agents.controller import AgentController
 from dmpc.agents.node import AgentNode
+from dmpc.agents.process import agent_node
 from dmpc.bus.faults import PLANT_PROCESS, FaultyBus
 from dmpc.bus.interface import Bus
 from dmpc.bus.memory import MemoryBus
-from dmpc.methods import method_spec, terminal_policy
-from dmpc.plant.barrier import Coordinator
+from dmpc.coordinator.node import CoordinatorNode
+from dmpc.coordinator.process import coordinator_node
+from dmpc.core.steps import StepRecord
+from dmpc.methods import method_spec
 from dmpc.plant.models import make_plant
-from dmpc.plant.node import PlantNode
+from dmpc.prepared import Prepared
 from dmpc.records.session import RunRecorder
-from dmpc.run_spec import Prepared
 from dmpc.runtime.central_loop import CentralLoop
-from dmpc.steps import StepRecord
 
 
 @dataclass
@@ -28,13 +28,13 @@ class InProcessRun:
     """The nodes of one in-process run (exposed for tests that inject faults)."""
 
     bus: MemoryBus
-    plant: PlantNode
+    coordinator: CoordinatorNode
     agents: list[AgentNode]
 
 
 def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: str = "local",
               bus_for: Callable[[MemoryBus, str], Bus] | None = None) -> InProcessRun:
-    """Create the bus, the plant node and one agent node per subsystem.
+    """Create the bus, the coordinator's node and one agent node per subsystem.
 
     Parameters
     ----------
@@ -48,21 +48,12 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
         view = lambda b, name: b  # noqa: E731
     else:
         view = lambda b, name: FaultyBus(b, name, prepared.faults)  # noqa: E731
-    system, design = prepared.system, prepared.design
-    plant_bus = view(bus, PLANT_PROCESS)
-    coordinator = Coordinator(system, design, make_plant(prepared), prepared.protocol, run_id,
-                              policy=terminal_policy(prepared.method, system, design), clock=plant_bus.now)
-    plant = PlantNode(plant_bus, coordinator, prepared.digest, on_step, mode=prepared.mode,
-                      dt=prepared.dt, deadline=prepared.deadline)
-    agents = []
-    for i, name in enumerate(prepared.names):
-        controller = AgentController(system, design, i, coupling=prepared.coupling, method=prepared.method)
-        agents.append(AgentNode(view(bus, name), controller, prepared.names, run_id, prepared.digest,
-                                plan_wait=prepared.plan_wait, scenario=prepared.name))
-    plant.announce()
+    node = coordinator_node(prepared, view(bus, PLANT_PROCESS), run_id, on_step, make_plant(prepared))
+    agents = [agent_node(prepared, name, view(bus, name), run_id) for name in prepared.names]
+    node.announce()
     for agent in agents:
         agent.announce()
-    return InProcessRun(bus=bus, plant=plant, agents=agents)
+    return InProcessRun(bus=bus, coordinator=node, agents=agents)
 
 
 def simulate(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: str = "local",
@@ -73,13 +64,13 @@ def simulate(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: 
     link) fail the run instead of retrying forever.
     """
     run = build_run(prepared, on_step, run_id, bus_for)
-    if not run.bus.run(until=lambda: run.plant.started or run.plant.finished, timeout=startup_timeout):
-        missing = sorted(set(prepared.names) - run.plant.ready)
-        run.plant.fail(f"agents {', '.join(missing)} not ready within {startup_timeout:g} s of simulated time")
+    if not run.bus.run(until=lambda: run.coordinator.started or run.coordinator.finished, timeout=startup_timeout):
+        missing = sorted(set(prepared.names) - run.coordinator.ready)
+        run.coordinator.fail(f"agents {', '.join(missing)} not ready within {startup_timeout:g} s of simulated time")
         return run
-    finished = run.bus.run(until=lambda: run.plant.finished)
+    finished = run.bus.run(until=lambda: run.coordinator.finished)
     if not finished:
-        run.plant.fail("the in-memory run stalled (no events left before the last step)")
+        run.coordinator.fail("the in-memory run stalled (no events left before the last step)")
     return run
 
 
@@ -95,8 +86,8 @@ def record_run(prepared: Prepared, recorder: RunRecorder) -> tuple[dict, str]:
         summary = recorder.complete(runtime="in-process (centralized, no agents)", failure=result.failure or None)
         return summary, result.failure
     run = simulate(prepared, recorder.on_step)
-    summary = recorder.complete(runtime="in-process", failure=run.plant.failure or None, rejected=run.plant.rejected,
-                                rejected_reasons=run.plant.rejects.reasons, duplicates=run.plant.coordinator.duplicates,
-                                inputs_refused=run.plant.coordinator.inputs_refused,
+    summary = recorder.complete(runtime="in-process", failure=run.coordinator.failure or None, rejected=run.coordinator.rejected,
+                                rejected_reasons=run.coordinator.rejects.reasons, duplicates=run.coordinator.coordinator.duplicates,
+                                inputs_refused=run.coordinator.coordinator.inputs_refused,
                                 agents={a.name: a.report() for a in run.agents})
-    return summary, run.plant.failure
+    return summary, run.coordinator.failure

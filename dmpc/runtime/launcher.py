@@ -17,22 +17,22 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
 from dmpc.bus import keys
-from dmpc.console import stderr_console
-from dmpc.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from dmpc.prepared import Prepared
+from dmpc.prepared.bundle import write_bundle
 from dmpc.records.agent_reports import merge_agent_reports as merge_reports
 from dmpc.records.files import BUNDLE, DESIGN, LOGS, PROCESSES, SCENARIO, STEP_LOG, TLS, log_file, report_file
 from dmpc.records.run_folder import RunFolderError, claim_folder, write_error, write_json
-from dmpc.run_bundle import write_bundle
-from dmpc.run_spec import Prepared
 from dmpc.runtime.forkserver import ForkServer, ForkServerError
-from dmpc.runtime.hosting import group_agents
+from dmpc.runtime.hosting import HOST_PREFIX, group_agents
 from dmpc.runtime.logpump import LogPump
+from dmpc.runtime.signals import interrupts_deferred, interrupts_held, raise_if_interrupted
 from dmpc.runtime.supervisor import RestartPolicy, Supervision, Supervisor, restart_note
 from dmpc.scenario import dump_resolved
 from dmpc.security.acl import ACL_FILE
+from dmpc.terminal.console import stderr_console
+from dmpc.terminal.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from dmpc.terminal.progress import ProgressBar
 
 STOP_GRACE = 3.0
 DMPC = (sys.executable, "-m", "dmpc.cli")
@@ -64,6 +64,11 @@ class Child:
 
     def poll(self) -> int | None:
         return self.proc.poll() if self.proc else None
+
+    @property
+    def running(self) -> bool:
+        """Started and not yet exited (a child not started yet is not running)."""
+        return self.proc is not None and self.proc.poll() is None
 
 
 @dataclass
@@ -195,17 +200,22 @@ def _forkable(child: Child) -> bool:
 
 def _fork_all(children: list[Child], pump: LogPump, forks: ForkServer) -> None:
     pipes = [os.pipe() for _ in children]
+    pumped = set()
     try:
-        forked = forks.spawn_all([(c.cmd[3:], write_end) for c, (_, write_end) in zip(children, pipes)])
-    except ForkServerError:
-        forked = [None] * len(children)
-    for child, proc, (read_end, write_end) in zip(children, forked, pipes):
-        os.close(write_end)
-        if proc is None:
-            os.close(read_end)
-            continue
-        child.proc = proc
-        pump.add(child.role, read_end, child.log_path)
+        try:
+            forked = forks.spawn_all([(c.cmd[3:], write_end) for c, (_, write_end) in zip(children, pipes)])
+        except ForkServerError:
+            forked = [None] * len(children)
+        for child, proc, (read_end, _) in zip(children, forked, pipes):
+            if proc is not None:
+                child.proc = proc
+                pump.add(child.role, read_end, child.log_path)
+                pumped.add(read_end)
+    finally:  # also when interrupted mid-burst (the fork server stops the agents it forked meanwhile)
+        for read_end, write_end in pipes:
+            os.close(write_end)
+            if read_end not in pumped:
+                os.close(read_end)
 
 
 def child_env() -> dict:
@@ -230,37 +240,46 @@ def spawn(child: Child, pump: LogPump | None = None, forks: ForkServer | None = 
     if pump is None:
         log = open(child.log_path, "ab")
         try:
-            child.proc = subprocess.Popen(child.cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                                          env=env, preexec_fn=_die_with_parent, close_fds=True)
+            with interrupts_deferred():
+                child.proc = subprocess.Popen(child.cmd, stdin=subprocess.DEVNULL, stdout=log,
+                                              stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent,
+                                              close_fds=True)
         finally:
             log.close()
         return
     read_end, write_end = os.pipe()
     try:
-        child.proc = subprocess.Popen(child.cmd, stdin=subprocess.DEVNULL, stdout=write_end, stderr=subprocess.STDOUT,
-                                      env=env, preexec_fn=_die_with_parent, close_fds=True)
-    except BaseException:
-        os.close(read_end)
-        raise
+        with interrupts_deferred():
+            try:
+                child.proc = subprocess.Popen(child.cmd, stdin=subprocess.DEVNULL, stdout=write_end,
+                                              stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent,
+                                              close_fds=True)
+            except BaseException:
+                os.close(read_end)
+                raise
+            pump.add(child.role, read_end, child.log_path)
     finally:
         os.close(write_end)
-    pump.add(child.role, read_end, child.log_path)
 
 
 def stop_all(children: list[Child], first_signal: int = signal.SIGINT, grace: float = STOP_GRACE) -> None:
-    """Signal every live child, wait up to ``grace`` s, then SIGKILL what is left and reap all."""
+    """Signal every live child, wait up to ``grace`` s, then SIGKILL what is left and reap all
+    (children not started yet are skipped: start-up may have been interrupted before them)."""
     for child in children:
-        if child.poll() is None:
+        if child.running:
             try:
                 child.proc.send_signal(first_signal)
             except ProcessLookupError:
                 pass
     deadline = time.monotonic() + grace
-    while time.monotonic() < deadline and any(c.poll() is None for c in children):
+    while time.monotonic() < deadline and any(c.running for c in children):
         time.sleep(0.02)
     for child in children:
-        if child.poll() is None:
-            child.proc.kill()
+        if child.running:
+            try:
+                child.proc.kill()
+            except ProcessLookupError:
+                pass
     for child in children:
         if child.proc is not None:
             child.proc.wait()
@@ -331,6 +350,7 @@ def launch(prepared: Prepared, out: Path, run_id: str, startup_timeout: float = 
                                f"({topology}{', TLS' if tls_dir is not None else ''}); logs in {out / LOGS}")
     fixed = port
     for attempt in range(1 if fixed is not None else PORT_ATTEMPTS):
+        raise_if_interrupted()  # one that Python dropped during the design or the run folder
         port = fixed if fixed is not None else free_port()
         children = child_commands(prepared, out, scenario_path, design_path, run_id, port, startup_timeout,
                                   extra_args, tls_dir, topology, plant_model, plant_timeout, agents_per_process)
@@ -365,20 +385,21 @@ def _supervise(children: list[Child], prepared: Prepared, out: Path, show_progre
     try:
         head = [c for c in children if not c.agents]
         start(head, pump)  # the plant imports and loads while the fork server does
+        raise_if_interrupted()
         forks = _fork_server(children[0].log_path.parent)
+        raise_if_interrupted()
         start([c for c in children if c.agents], pump, forks)
         write_json(out / PROCESSES, {c.role: c.pid for c in children})
         counter = StepCounter(out / STEP_LOG)
         if show_progress:
-            progress = Progress(TextColumn("[bold]steps"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                                console=stderr_console(), transient=True)
-            task = progress.add_task("run", total=prepared.protocol.steps)
+            progress = ProgressBar("steps", prepared.protocol.steps)
             progress.start()
 
         def tick() -> None:
+            raise_if_interrupted()
             done = counter.update()
             if progress is not None:
-                progress.update(task, completed=done)
+                progress.update(done)
 
         def respawn(child: Child) -> None:
             spawn(child, pump, forks)
@@ -389,19 +410,30 @@ def _supervise(children: list[Child], prepared: Prepared, out: Path, show_progre
         stop_all(children)
         return _result(children, out, ending.failed, pump, supervisor.record, ending.message, launched_at)
     except KeyboardInterrupt:
-        stop_all(children)
-        result = _result(children, out, {}, pump, supervisor.record if supervisor is not None else None,
-                         launched_at=launched_at)
-        return LaunchResult(EXIT_INTERRUPTED, "interrupted: every process stopped; completed steps are in the run "
-                                              "folder", result.summary)
+        with interrupts_held():
+            stop_all(children)
+            result = _result(children, out, {}, pump, supervisor.record if supervisor is not None else None,
+                             launched_at=launched_at)
+        return LaunchResult(EXIT_INTERRUPTED, interrupted_message(StepCounter(out / STEP_LOG).update()),
+                            result.summary)
     finally:
-        if progress is not None:
-            progress.stop()
-        if any(c.poll() is None for c in children):
-            stop_all(children, signal.SIGTERM)
-        if forks is not None:
-            forks.close()
-        pump.close()
+        with interrupts_held():
+            if progress is not None:
+                progress.stop()
+            if any(c.running for c in children):
+                stop_all(children, signal.SIGTERM)
+            if forks is not None:
+                forks.close()
+            pump.close()
+
+
+def interrupted_message(steps: int) -> str:
+    """What an interrupted run says, after ``steps`` completed steps."""
+    if steps == 0:
+        return ("interrupted before the first step: every process stopped; no step was run (the run folder holds "
+                "the design and the logs)")
+    return (f"interrupted after {steps} step{'s' if steps != 1 else ''}: every process stopped; the completed steps "
+            "are in the run folder")
 
 
 def _fork_server(logs: Path) -> ForkServer | None:
@@ -440,7 +472,7 @@ def merge_agent_reports(out: Path, children: list[Child], record: Supervision | 
         extra["security"] = security
     if record is not None:
         extra["launcher"] = record.to_json()
-        hosted = {c.role: list(c.agents) for c in children if len(c.agents) > 1}
+        hosted = {c.role: list(c.agents) for c in children if c.role.startswith(HOST_PREFIX)}  # a lone agent too
         if hosted:
             extra["launcher"]["hosts"] = hosted
     return merge_reports(out, names, extra, launched_at)

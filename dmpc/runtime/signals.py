@@ -1,7 +1,23 @@
 """Signal handling shared by every process: SIGTERM behaves like Ctrl-C."""
 from __future__ import annotations
 
+import contextlib
 import signal
+import sys
+import threading
+
+
+class _Interrupts:
+    received = 0
+    """Signals handled by :func:`sigterm_as_interrupt`'s handler since it was set."""
+    deferred = 0
+    """Depth of :func:`interrupts_deferred` blocks: while above 0 the handler only counts."""
+
+
+def _interrupt(signum, frame) -> None:
+    _Interrupts.received += 1
+    if not _Interrupts.deferred:
+        raise KeyboardInterrupt
 
 
 def sigterm_as_interrupt() -> None:
@@ -10,9 +26,78 @@ def sigterm_as_interrupt() -> None:
     SIGINT is set explicitly: a process started in the background by a shell (or by a parent
     that was) inherits SIGINT ignored, and Python then leaves it ignored.
     """
+    if not handles_interrupts():  # counted from the first call on
+        _Interrupts.received = 0
+    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
+    if sys.unraisablehook is not _quiet_about_interrupts:
+        _quiet_about_interrupts.default = sys.unraisablehook
+        sys.unraisablehook = _quiet_about_interrupts
 
-    def _raise(signum, frame):
+
+def _quiet_about_interrupts(unraisable) -> None:
+    """Python's hook for exceptions it drops, without its traceback for a KeyboardInterrupt of
+    :func:`_interrupt` (:func:`raise_if_interrupted` acts on it)."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and _Interrupts.received:
+        return
+    _quiet_about_interrupts.default(unraisable)
+
+
+_quiet_about_interrupts.default = sys.__unraisablehook__
+
+
+def raise_if_interrupted() -> None:
+    """Raise KeyboardInterrupt if a SIGINT or SIGTERM has come (with :func:`sigterm_as_interrupt`'s
+    handler in place).
+
+    The handler raises where the program happens to be, and Python drops an exception raised in
+    a weakref callback, a finaliser or a fork hook ("Exception ignored in ..."): the program would
+    go on as if no signal had come. Called at the points where a long start-up or wait checks
+    in, the interrupt takes effect there.
+    """
+    if _Interrupts.received and handles_interrupts():
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, _raise)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+
+def handles_interrupts() -> bool:
+    """True if :func:`sigterm_as_interrupt`'s handler is in place (this process is a dmpc command,
+    not a program that imported dmpc)."""
+    return signal.getsignal(signal.SIGINT) is _interrupt
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Start a child process without losing an interrupt: a SIGINT or SIGTERM that arrives meanwhile
+    raises KeyboardInterrupt at the end of the block, once the child is recorded.
+
+    ``subprocess.Popen`` with a ``preexec_fn`` runs Python's fork hooks, and a KeyboardInterrupt
+    raised inside one is printed and dropped ("Exception ignored in ... _releaseLock"): the run
+    would go on as if no signal had come. Raised after the fork but before ``Popen`` returns, it
+    would leave a child nobody knows of. (Only with :func:`sigterm_as_interrupt`'s handler.)
+    """
+    before = _Interrupts.received
+    _Interrupts.deferred += 1
+    try:
+        yield
+    finally:
+        _Interrupts.deferred -= 1
+    if _Interrupts.received != before:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def interrupts_held():
+    """Ignore SIGINT and SIGTERM for the duration (a bounded shutdown that a second Ctrl-C must not
+    cut short, leaving processes behind); the handlers are restored afterwards.
+
+    Only the main thread can set handlers: elsewhere this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from dmpc.exit_codes import EXIT_OK, EXIT_VERDICT
+from dmpc.terminal.exit_codes import EXIT_OK, EXIT_VERDICT
 
 FINISHED = (EXIT_OK, EXIT_VERDICT)
 """Exit codes of a plant that ran to the end (the verdict is in summary.json)."""

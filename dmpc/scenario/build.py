@@ -1,4 +1,4 @@
-"""From a validated :class:`~dmpc.scenario.schema.Scenario` to the numerical objects of ``dmpc.system``.
+"""From a validated :class:`~dmpc.scenario.schema.Scenario` to the numerical objects of ``dmpc.core.system``.
 
 Subsystems are indexed 0..M-1 in file order (a family: "1".."M" -> 0..M-1).
 """
@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmpc.design.tubes import RevisionBound
+from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
+from dmpc.offline.tubes import RevisionBound
 from dmpc.scenario.load import ScenarioError
 from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario
-from dmpc.system import CoupledSystem, Coupling, LinearSet, Subsystem
 
 __all__ = ["alpha0_vector", "build_system", "discrete_model", "given_gains", "revision_bounds"]
 
@@ -52,7 +52,7 @@ def build_system(scn: Scenario) -> CoupledSystem:
 
 
 def discrete_model(scn: Scenario):
-    """The discretisation of a ``time: continuous`` scenario (:class:`dmpc.discretisation.DiscreteModel`).
+    """The discretisation of a ``time: continuous`` scenario (:class:`dmpc.core.discretisation.DiscreteModel`).
 
     Raises
     ------
@@ -60,7 +60,7 @@ def discrete_model(scn: Scenario):
         The scenario is in discrete time, or ``exact-zoh`` spreads entries outside the coupling
         graph above ``discretisation.tolerance`` without ``truncate``.
     """
-    from dmpc.discretisation import FillInRefused, discretise  # lazy: scipy.linalg only when needed
+    from dmpc.core.discretisation import FillInRefused, discretise  # lazy: scipy.linalg only when needed
 
     if scn.time != "continuous":
         raise ScenarioError("time: the scenario is in discrete time; nothing to discretise", field="time")
@@ -128,6 +128,6 @@ def alpha0_vector(scn: Scenario, system: CoupledSystem) -> np.ndarray:
 
 
 def revision_bounds(scn: Scenario) -> dict:
-    """``{index: dmpc.design.tubes.RevisionBound}`` for the subsystems that declare one."""
+    """``{index: dmpc.offline.tubes.RevisionBound}`` for the subsystems that declare one."""
     return {i: RevisionBound(state=_array(s.revision_bound.state), input=_array(s.revision_bound.input))
             for i, s in enumerate(scn.resolved_subsystems()) if s.revision_bound is not None}

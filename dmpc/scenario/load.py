@@ -16,6 +16,7 @@ from typing import Annotated, Any, Mapping, Union, get_args, get_origin
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from dmpc.core.errors import InputError
 from dmpc.scenario.schema import SET_TAGS, Scenario, SpecError
 
 __all__ = ["ScenarioError", "dump_resolved", "load_scenario", "parse_override", "scenario_json_schema",
@@ -25,7 +26,7 @@ MAX_NODES = 1_000_000
 """Largest accepted number of YAML values after expanding aliases (guards against alias bombs)."""
 
 
-class ScenarioError(Exception):
+class ScenarioError(InputError):
     """An invalid scenario file, override or value; the message is one line naming the field.
 
     Attributes

@@ -19,7 +19,8 @@ import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema, model_validator
 
 from dmpc.bus.faults import PLANT_PROCESS
-from dmpc.methods import METHOD_NAMES
+from dmpc.core.errors import DmpcError
+from dmpc.core.steps import DEFAULT_METHOD, Coupling, Method, Mode
 
 __all__ = [
     "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "DiscretisationSpec", "DisturbanceSpec",
@@ -37,7 +38,7 @@ PLANT = PLANT_PROCESS  # reserved: the fault links name the coordinator's proces
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 
 
-class SpecError(ValueError):
+class SpecError(DmpcError, ValueError):
     """A validation failure of the field at ``path`` (relative to the model being validated).
 
     Parameters
@@ -485,7 +486,7 @@ class TerminalSpec(_Model):
 class OptionsSpec(_Model):
     """Algorithm and runtime options."""
 
-    coupling: Literal["feedforward", "nominal"] = Field(
+    coupling: Coupling = Field(
         "feedforward", description="'feedforward': predictions include the neighbours' assumed trajectories; "
                                    "'nominal': the paper's decoupled model (not recursively feasible in general).")
     tube: Literal["none", "robust"] = Field(
@@ -495,15 +496,15 @@ class OptionsSpec(_Model):
     tolerance: PosFloat = Field(1e-9, description="Jacobi stops early when the largest plan change is below this.")
     initial_iterations: PosInt = Field(200, description="Maximum Jacobi rounds at k = 0 (iterate to convergence).")
     initial_tolerance: PosFloat = Field(1e-9, description="Jacobi convergence tolerance at k = 0.")
-    method: Literal[METHOD_NAMES] = Field(
-        "tv-box", description="Control method. 'tv-box': the paper's time-varying terminal boxes; 'tv-box-opt': the "
+    method: Method = Field(
+        DEFAULT_METHOD, description="Control method. 'tv-box': the paper's time-varying terminal boxes; 'tv-box-opt': the "
                               "same with alpha(0), beta(0) = sigma(alpha(0)) chosen by the centralised QP at k = 0; "
                               "'fixed-box': the boxes held at alpha(0), beta(0); 'ellipsoid': terminal ellipsoids "
                               "x_i' P_i x_i <= r at the static common level (imposed through inscribed polytopes); "
                               "'ellipsoid-adaptive': the same with levels r_i(k+1) = r_i(k) + eta' Gamma_i eta; "
                               "'centralized': one QP over the whole system with X^f as terminal set, no agents "
                               "(the optimality reference).")
-    mode: Literal["lockstep", "realtime"] = Field(
+    mode: Mode = Field(
         "lockstep", description="'lockstep': advance as soon as all plans are in; 'realtime': advance every dt.")
     dt: PosFloat = Field(0.1, description="Seconds per step in realtime mode.")
     deadline: Optional[PosFloat] = Field(
@@ -662,6 +663,7 @@ class Scenario(_Model):
         _check_alpha0(self.terminal.alpha0, subs, index)
         _check_revision_bounds(self, subs, index)
         _check_links(self.faults.links, index)
+        _check_loss(self)
         _check_time(self)
         _check_disturbance(self.plant.disturbance, subs, index)
         return self
@@ -740,6 +742,17 @@ def _check_links(links: list[LinkFaultSpec], index: dict[str, int]) -> None:
                                 f"unknown endpoint '{name}' (a subsystem name or '{PLANT}'; {_known(index)})")
         if link.source == link.target:
             raise SpecError(f"faults.links[{k}].target", f"must differ from source ('{link.source}')")
+
+
+def _check_loss(scn: Scenario) -> None:
+    """Lost messages need a deadline: in lockstep without one the run would wait for them forever."""
+    if scn.options.deadline is not None or scn.options.mode == "realtime":
+        return
+    lossy = ["faults.loss"] if scn.faults.loss > 0 else []
+    lossy += [f"faults.links[{k}].loss" for k, link in enumerate(scn.faults.links) if link.loss > 0]
+    if lossy:
+        raise SpecError(lossy[0], "lost messages need a deadline in lockstep mode, or the run would wait for them "
+                                  "forever: set options.deadline (--deadline S) or options.mode: realtime")
 
 
 def _check_time(scn: Scenario) -> None:

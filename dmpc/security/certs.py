@@ -10,9 +10,14 @@ alternative names of the hosts it may be reached at, so that a peer connecting t
 
 Files in the directory::
 
-    ca.pem, ca.key            the certificate authority (keep ca.key off the nodes)
+    ca.pem                    the certificate authority's certificate
     <role>.pem, <role>.key    one pair per role
     acl.json                  the access control of the run (dmpc.security.acl)
+
+The CA's private key, which can sign a certificate for any role, is never written into the
+directory: ``dmpc certs`` writes it apart (:func:`default_ca_key_path`), and ``dmpc run --secure``
+does not write it at all (it is dropped once the run's certificates are signed). Every private
+key is written with mode 0600, and a directory made here has mode 0700.
 """
 from __future__ import annotations
 
@@ -78,8 +83,17 @@ def _write_cert(path: Path, cert: x509.Certificate) -> None:
     path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
 
 
-def make_ca(directory: Path, name: str = "dmpc CA", days: int = VALID_DAYS) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
-    """A self-signed CA (ECDSA P-256), written to ``ca.pem`` and ``ca.key``."""
+def default_ca_key_path(directory: str | Path) -> Path:
+    """Where ``dmpc certs DIR`` keeps the CA's private key: ``DIR-ca.key`` beside the directory,
+    so that a copy of the directory (or of any of its files) never carries it."""
+    directory = Path(directory).resolve()
+    return directory.parent / f"{directory.name or 'certs'}-{CA_KEY}"
+
+
+def make_ca(directory: Path, name: str = "dmpc CA", days: int = VALID_DAYS,
+            key_file: Path | None = None) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    """A self-signed CA (ECDSA P-256), its certificate written to ``ca.pem``; its private key to
+    ``key_file`` if given (mode 0600), else nowhere."""
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.timezone.utc)
     cert = (x509.CertificateBuilder()
@@ -93,7 +107,9 @@ def make_ca(directory: Path, name: str = "dmpc CA", days: int = VALID_DAYS) -> t
             .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
             .sign(key, hashes.SHA256()))
     _write_cert(directory / CA_CERT, cert)
-    _write_key(directory / CA_KEY, key)
+    if key_file is not None:
+        Path(key_file).parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        _write_key(Path(key_file), key)
     return cert, key
 
 
@@ -121,8 +137,8 @@ def issue(directory: Path, role: str, ca_cert: x509.Certificate, ca_key: ec.Elli
 
 
 def make_certificates(directory: str | Path, roles: Iterable[str], hosts: Sequence[str] = DEFAULT_HOSTS,
-                      days: int = VALID_DAYS) -> dict[str, TlsFiles]:
-    """A new CA and one certificate per role in ``directory`` (created).
+                      days: int = VALID_DAYS, ca_key: str | Path | None = None) -> dict[str, TlsFiles]:
+    """A new CA and one certificate per role in ``directory`` (created, mode 0700).
 
     Parameters
     ----------
@@ -133,6 +149,9 @@ def make_certificates(directory: str | Path, roles: Iterable[str], hosts: Sequen
         IP addresses and DNS names every certificate is valid for.
     days : int
         Validity.
+    ca_key : path, optional
+        Where to write the CA's private key (mode 0600). None: nowhere; once these
+        certificates are signed, no other can be made with this CA.
 
     Returns
     -------
@@ -140,13 +159,13 @@ def make_certificates(directory: str | Path, roles: Iterable[str], hosts: Sequen
     """
     hosts = [check_host(h) for h in hosts]
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    ca_cert, ca_key = make_ca(directory, days=days)
-    return {role: issue(directory, role, ca_cert, ca_key, hosts, days) for role in roles}
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    ca_cert, ca_private = make_ca(directory, days=days, key_file=None if ca_key is None else Path(ca_key))
+    return {role: issue(directory, role, ca_cert, ca_private, hosts, days) for role in roles}
 
 
 def make_run_security(directory: str | Path, system, hosts: Sequence[str] = DEFAULT_HOSTS, run_id: str = "*",
-                      days: int = VALID_DAYS, force: bool = False) -> list[str]:
+                      days: int = VALID_DAYS, force: bool = False, ca_key: str | Path | None = None) -> list[str]:
     """Certificates for every role of ``system`` and its ``acl.json`` in ``directory``.
 
     Parameters
@@ -155,7 +174,10 @@ def make_run_security(directory: str | Path, system, hosts: Sequence[str] = DEFA
     run_id : str
         Binds the access control to one run; ``*`` for any run of this scenario.
     force : bool
-        Replace a directory's existing CA; refused otherwise.
+        Replace a directory's existing CA, and an existing ``ca_key`` file; refused otherwise.
+    ca_key : path, optional
+        Where to keep the CA's private key (mode 0600), outside ``directory`` as
+        :func:`default_ca_key_path`; None: it is not kept (``dmpc run --secure``).
 
     Returns
     -------
@@ -172,10 +194,13 @@ def make_run_security(directory: str | Path, system, hosts: Sequence[str] = DEFA
     if (directory / CA_CERT).exists() and not force:
         raise ValueError(f"{directory} already holds certificates ({CA_CERT}): choose another directory "
                          "or pass --force to replace them")
+    if ca_key is not None and Path(ca_key).exists() and not force:
+        raise ValueError(f"{ca_key} already holds a CA key: choose another place with --ca-key "
+                         "or pass --force to replace it")
     acl = scenario_access_control(system, run_id)
     roles = role_names(s.name for s in system.subsystems)
     try:
-        make_certificates(directory, roles, hosts, days)
+        make_certificates(directory, roles, hosts, days, ca_key=ca_key)
         write_acl(directory, acl)
     except OSError as exc:
         raise ValueError(f"{directory}: cannot write the certificates ({exc.strerror or exc})") from None

@@ -7,17 +7,36 @@ so the counts stay bounded whatever arrives. Each sender gets at most one log li
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+import re
 from collections.abc import Callable, Iterable
 
 import numpy as np
+
+from dmpc.bus.messages import MESSAGE_TYPES
 
 UNKNOWN = "(unknown)"
 STALE = "stale"
 """Why the coordinator drops a plan of a closed round, or a copy of a state already taken: normal
 (a plan after its round's deadline in realtime, a state the plant repeats), so not counted."""
 LOG_INTERVAL = 1.0
+MAX_REASON = 60
+"""Characters of a reason counted in ``Rejections.reasons``."""
+_FIELDS = frozenset(f.name for cls in MESSAGE_TYPES.values() for f in dataclasses.fields(cls))
+_INDEXED_FIELD = re.compile(r"[a-z_]+\[[^\]]*\]")  # x[1], u[2], provided[a]: one entry of a field
+_DETAIL = re.compile(r", got |;| \(")  # what follows is the value the sender sent, or more detail
+
+
+def reason_of(why: str) -> str:
+    """The reason under which a drop is counted: the text before the first colon, except that a
+    field of a message (``x[1]``, ``k``) keeps what is wrong with it (``x[1]: non-finite values``,
+    ``k: expected an integer >= 0``) without the value the sender sent."""
+    head, colon, rest = why.partition(":")
+    if colon and (head in _FIELDS or _INDEXED_FIELD.fullmatch(head)):
+        head = f"{head}: {_DETAIL.split(rest.strip(), maxsplit=1)[0].strip()}"
+    return head[:MAX_REASON]
 
 
 class Rejections:
@@ -40,7 +59,7 @@ class Rejections:
     counts : dict str -> int
         Drops per sender (the records' ``rejected``).
     reasons : dict str -> int
-        Drops per reason (the text up to the first colon).
+        Drops per reason (:func:`reason_of`).
     """
 
     def __init__(self, log: logging.Logger, who: str, clock: Callable[[], float], known: Iterable[str],
@@ -64,7 +83,7 @@ class Rejections:
         """Count one dropped message from ``sender`` and maybe log it."""
         sender = self.sender(sender)
         self.counts[sender] = self.counts.get(sender, 0) + 1
-        reason = why.split(":", 1)[0][:60]
+        reason = reason_of(why)
         if reason not in self.reasons and len(self.reasons) >= 64:
             reason = "other"
         self.reasons[reason] = self.reasons.get(reason, 0) + 1

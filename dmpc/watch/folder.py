@@ -10,17 +10,18 @@ import json
 import os
 from pathlib import Path
 
+from dmpc.core.errors import InputError
+from dmpc.prepared.bundle import load_bundle
 from dmpc.records.files import BUNDLE, DESIGN, SCENARIO, STEP_LOG, SUMMARY
-from dmpc.run_bundle import load_bundle
-from dmpc.runtime.setup import prepare
 from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from dmpc.watch.meta import RunMeta, meta_json
 from dmpc.watch.state import RunState
 
 CHUNK = 8 << 20  # bytes of the step log read at most per poll, so a huge log cannot stall the page
 
 
-class FolderError(ValueError):
+class FolderError(InputError, ValueError):
     """The path is not a run folder, or its description cannot be read."""
 
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dmpc.quantities import quantities
-from dmpc.system import box_hull
+from dmpc.core.quantities import quantities
+from dmpc.core.system import box_hull
 
 META_VERSION = 1
 
@@ -44,7 +44,7 @@ def meta_json(prepared, run_id: str) -> dict:
 
     Parameters
     ----------
-    prepared : dmpc.run_spec.Prepared
+    prepared : dmpc.prepared.Prepared
     run_id : str
 
     Returns

@@ -20,8 +20,16 @@ from bokeh.plotting import figure
 
 from dmpc.bus import keys
 from dmpc.watch.state import RunState, StateRow, StepRow
-from dmpc.watch.views import (AgentHistory, agent_states, agent_table, graph_tables, readout_html, summary_html,
-                              table_html, verdict_of)
+from dmpc.watch.views import (
+    AgentHistory,
+    agent_states,
+    agent_table,
+    graph_tables,
+    readout_html,
+    summary_html,
+    table_html,
+    verdict_of,
+)
 
 SHOWN = 8  # subsystems with their own plots (the first ones, in scenario order)
 TICK_MS = 500  # the page is redrawn at most this often: each redraw costs the browser tens of ms
@@ -319,7 +327,7 @@ class WatchPage:
             snap.plant.get("rejected_reasons") if snap else None) or {}
         notes = []
         if reasons:
-            notes.append("dropped by the plant, by reason: " + ", ".join(f"{r}: {c}" for r, c in reasons.items()))
+            notes.append("dropped by the coordinator, by reason: " + ", ".join(f"{r}: {c}" for r, c in reasons.items()))
         if self.meta.M > SHOWN:
             notes.append(f"the first {SHOWN} of {self.meta.M} subsystems have plots below; the table lists every agent")
         _set(self.agents, "text", table_html(self.table) + "".join(f"<p><i>{html.escape(n)}</i></p>" for n in notes))
@@ -330,9 +338,9 @@ class WatchPage:
         alive = self.history.alive(n)
         alive.update(self._alive_now() or {})
         snap = self.snap
-        plant_alive = not (self.live and snap is not None and snap.alive.get(keys.COORDINATOR_ROLE) is False and self.follow
-                           and snap.summary is None)
-        nodes, edges = graph_tables(self.meta, agent_states(self.meta, last, alive), plant_alive)
+        coordinator_alive = not (self.live and snap is not None and snap.alive.get(keys.COORDINATOR_ROLE) is False
+                                 and self.follow and snap.summary is None)
+        nodes, edges = graph_tables(self.meta, agent_states(self.meta, last, alive), coordinator_alive)
         _set(self.nodes, "data", nodes)
         _set(self.edges, "data", edges)
 

@@ -12,6 +12,7 @@ import threading
 from dataclasses import dataclass, field
 
 from dmpc.bus import keys
+from dmpc.core.errors import DmpcError
 from dmpc.watch.meta import RunMeta
 
 
@@ -50,7 +51,7 @@ class StepRow:
     note: str
 
 
-class BadStep(ValueError):
+class BadStep(DmpcError, ValueError):
     """A step line that cannot be shown: missing fields or the wrong dimensions."""
 
 

@@ -19,8 +19,10 @@ import math
 import threading
 import time
 
-
 from dmpc.bus import keys
+from dmpc.bus.interface import Broadcast, Bus
+from dmpc.core.errors import DmpcError
+from dmpc.prepared import Prepared
 from dmpc.records.run_folder import jsonable, step_line  # noqa: F401 - step_line: the telemetry's step message
 from dmpc.watch.meta import meta_json
 
@@ -40,7 +42,7 @@ def encode(kind: str, run: str, **fields) -> bytes:
                       separators=(",", ":")).encode()
 
 
-class TelemetryError(ValueError):
+class TelemetryError(DmpcError, ValueError):
     """A telemetry payload that is not a message of this run."""
 
 
@@ -80,8 +82,9 @@ class Telemetry:
 
     Parameters
     ----------
-    session : zenoh.Session
-        The plant's session.
+    publishers : mapping of kind -> Broadcast
+        One best-effort publisher per kind of message (``KINDS``), from the coordinator's bus
+        (:meth:`dmpc.bus.interface.Bus.broadcast`).
     run_id : str
     meta : dict
         The run's description (:func:`dmpc.watch.meta.meta_json`).
@@ -96,13 +99,9 @@ class Telemetry:
         Messages published, steps dropped because the queue was full, and failed puts.
     """
 
-    def __init__(self, session, run_id: str, meta: dict, meta_every: float = META_EVERY) -> None:
-        import zenoh
-
+    def __init__(self, publishers: dict[str, Broadcast], run_id: str, meta: dict, meta_every: float = META_EVERY) -> None:
         self.run_id = run_id
-        options = dict(encoding=ENCODING, congestion_control=zenoh.CongestionControl.DROP,
-                       reliability=zenoh.Reliability.BEST_EFFORT, priority=zenoh.Priority.DATA_LOW, express=False)
-        self._publishers = {kind: session.declare_publisher(keys.telemetry(run_id, kind), **options) for kind in KINDS}
+        self._publishers = dict(publishers)
         self._meta = encode("meta", run_id, meta=meta)
         self._meta_every = meta_every
         self._meta_at = -math.inf
@@ -119,7 +118,7 @@ class Telemetry:
 
     # -- the plant's thread ----------------------------------------------------------------
     def step(self, rec, node) -> None:
-        """Queue a completed step with the plant's status (``node``: the PlantNode) if an observer
+        """Queue a completed step with the plant's status (``node``: the CoordinatorNode) if an observer
         listens; never blocks."""
         if not self.watched:
             return
@@ -143,10 +142,7 @@ class Telemetry:
         if self._end is not None:
             self._put("end", self._end)  # a second copy: the first may have been dropped
         for publisher in self._publishers.values():
-            try:
-                publisher.undeclare()
-            except Exception:  # noqa: BLE001 - best effort on the way out
-                pass
+            publisher.close()
 
     # -- the publishing thread -------------------------------------------------------------
     def _put(self, kind: str, payload: bytes) -> None:
@@ -157,10 +153,7 @@ class Telemetry:
             self.errors += 1
 
     def _observed(self) -> bool:
-        try:
-            return self._publishers["step"].matching_status.matching
-        except Exception:  # noqa: BLE001
-            return False
+        return self._publishers["step"].matched
 
     def _loop(self) -> None:
         while True:
@@ -186,13 +179,10 @@ class Telemetry:
                 return
 
 
-def open_telemetry(bus, run_id: str, prepared) -> Telemetry | None:
-    """Telemetry on the Zenoh session under ``bus`` (a fault-injecting wrapper is looked
-    through), or None for a bus without one (the in-memory bus)."""
-    while hasattr(bus, "inner"):
-        bus = bus.inner
-    session = getattr(bus, "session", None)
-    if session is None:
+def open_telemetry(bus: Bus, run_id: str, prepared: Prepared) -> Telemetry | None:
+    """Telemetry on the coordinator's bus, or None for a bus that nothing outside the run can
+    observe (the in-memory bus)."""
+    publishers = {kind: bus.broadcast(keys.telemetry(run_id, kind), ENCODING) for kind in KINDS}
+    if any(p is None for p in publishers.values()):
         return None
-
-    return Telemetry(session, run_id, meta_json(prepared, run_id))
+    return Telemetry(publishers, run_id, meta_json(prepared, run_id))

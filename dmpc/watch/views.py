@@ -13,11 +13,12 @@ import re
 
 import numpy as np
 
+from dmpc.bus.keys import COORDINATOR_ROLE as COORDINATOR
 from dmpc.watch.meta import RunMeta
 from dmpc.watch.state import StateRow, StepRow
 
 COLORS = {"ok": "#2ca02c", "up": "#2ca02c", "late": "#ff7f0e", "fallback": "#e6b800", "lost": "#d62728",
-          "down": "#d62728", "waiting": "#999999", "idle": "#999999", "plant": "#1f77b4"}
+          "down": "#d62728", "waiting": "#999999", "idle": "#999999", "coordinator": "#1f77b4"}
 CELL_COLORS = {"ok": "#dff0d8", "late": "#fde3c8", "fallback": "#fcf3c4", "lost": "#f6d0d0", "waiting": "#eeeeee"}
 _EVENT = re.compile(r"agent (\S+) (lost|back)")
 
@@ -99,7 +100,7 @@ def agent_table(meta: RunMeta, history: AgentHistory, n: int, last: StepRow | No
     """The per-agent table after the first ``n`` steps (``last``: the n-th), one row per agent.
 
     ``alive_now`` (name -> alive), when given, replaces the liveliness the notes tell. Dropped
-    messages: those the plant dropped from each agent (``plant`` status, or the summary's
+    messages: those the coordinator dropped from each agent (its ``plant`` status, or the summary's
     ``rejected``), and, once the run has ended, those each agent dropped, by reason (its
     report in the summary's ``agents``).
     """
@@ -112,7 +113,7 @@ def agent_table(meta: RunMeta, history: AgentHistory, n: int, last: StepRow | No
     rejected = (summary or {}).get("rejected") or plant.get("rejected") or {}
     reports = (summary or {}).get("agents") or {}
     columns: dict[str, list] = {key: [] for key in ("agent", "alive", "state", "color", "status", "solve_ms",
-                                                   "latency_ms", "fallbacks", "dropped_plant", "dropped_agent",
+                                                   "latency_ms", "fallbacks", "dropped_coordinator", "dropped_agent",
                                                    "rejoins")}
     for i, name in enumerate(meta.names):
         report = reports.get(name) or {}
@@ -126,7 +127,7 @@ def agent_table(meta: RunMeta, history: AgentHistory, n: int, last: StepRow | No
         columns["solve_ms"].append(ms(last.solve_time[i]) if last else "-")
         columns["latency_ms"].append(ms(last.latency[i]) if last and i < len(last.latency) else "-")
         columns["fallbacks"].append(fallbacks[i])
-        columns["dropped_plant"].append(int(rejected.get(name, 0)))
+        columns["dropped_coordinator"].append(int(rejected.get(name, 0)))
         columns["dropped_agent"].append("-" if dropped is None else f"{dropped}" + (
             " (" + ", ".join(f"{r}: {c}" for r, c in reasons.items()) + ")" if reasons else ""))
         columns["rejoins"].append(back[name])
@@ -135,7 +136,7 @@ def agent_table(meta: RunMeta, history: AgentHistory, n: int, last: StepRow | No
 
 TABLE_COLUMNS = [("agent", "agent"), ("alive", "alive"), ("state", "state"), ("status", "QP status"),
                  ("solve_ms", "solve (ms)"), ("latency_ms", "latency (ms)"), ("fallbacks", "fallbacks"),
-                 ("dropped_plant", "dropped by plant"), ("dropped_agent", "dropped by agent"), ("rejoins", "rejoins")]
+                 ("dropped_coordinator", "dropped by coordinator"), ("dropped_agent", "dropped by agent"), ("rejoins", "rejoins")]
 
 
 def table_html(columns: dict[str, list]) -> str:
@@ -153,9 +154,9 @@ def table_html(columns: dict[str, list]) -> str:
 
 
 def positions(meta: RunMeta) -> dict[str, tuple[float, float]]:
-    """Where each node of the graph is drawn: the agents on a circle, the plant at its centre."""
+    """Where each node of the graph is drawn: the agents on a circle, the coordinator at its centre."""
     M = meta.M
-    pos = {"plant": (0.0, 0.0)}
+    pos = {COORDINATOR: (0.0, 0.0)}
     for i, name in enumerate(meta.names):
         angle = math.pi / 2 - 2 * math.pi * i / max(M, 1)
         pos[name] = (math.cos(angle), math.sin(angle))
@@ -184,16 +185,17 @@ def link_state(a: str, b: str) -> str:
     return "up"
 
 
-def graph_tables(meta: RunMeta, states: list[str], plant_alive: bool = True) -> tuple[dict, dict]:
+def graph_tables(meta: RunMeta, states: list[str], coordinator_alive: bool = True) -> tuple[dict, dict]:
     """Nodes and links of the communication graph: (nodes, edges) columns.
 
-    Links are the neighbour pairs (each agent receives its neighbours' plans) and the plant's
+    Links are the neighbour pairs (each agent receives its neighbours' plans) and the coordinator's
     link to every agent (releases and plans).
     """
     pos = positions(meta)
     by_name = dict(zip(meta.names, states))
-    nodes = {"x": [pos["plant"][0]], "y": [pos["plant"][1]], "name": ["plant"],
-             "state": ["alive" if plant_alive else "gone"], "color": [COLORS["plant"] if plant_alive else COLORS["lost"]]}
+    nodes = {"x": [pos[COORDINATOR][0]], "y": [pos[COORDINATOR][1]], "name": [COORDINATOR],
+             "state": ["alive" if coordinator_alive else "gone"],
+             "color": [COLORS[COORDINATOR] if coordinator_alive else COLORS["lost"]]}
     for name, state in by_name.items():
         nodes["x"].append(pos[name][0])
         nodes["y"].append(pos[name][1])
@@ -201,9 +203,9 @@ def graph_tables(meta: RunMeta, states: list[str], plant_alive: bool = True) -> 
         nodes["state"].append(state)
         nodes["color"].append(COLORS[state])
     edges = {key: [] for key in ("x0", "y0", "x1", "y1", "link", "state", "color", "dash", "faults")}
-    links = [(a, b, "plans") for a, b in meta.edges] + [("plant", name, "release/plan") for name in meta.names]
+    links = [(a, b, "plans") for a, b in meta.edges] + [(COORDINATOR, name, "release/plan") for name in meta.names]
     for a, b, what in links:
-        state = link_state(by_name.get(a, "ok" if plant_alive else "lost"), by_name[b])
+        state = link_state(by_name.get(a, "ok" if coordinator_alive else "lost"), by_name[b])
         edges["x0"].append(pos[a][0])
         edges["y0"].append(pos[a][1])
         edges["x1"].append(pos[b][0])
@@ -211,7 +213,7 @@ def graph_tables(meta: RunMeta, states: list[str], plant_alive: bool = True) -> 
         edges["link"].append(f"{a} – {b} ({what})")
         edges["state"].append(state)
         edges["color"].append(COLORS[state])
-        edges["dash"].append("dashed" if a == "plant" else "solid")
+        edges["dash"].append("dashed" if a == COORDINATOR else "solid")
         edges["faults"].append("; ".join([_fault_text(meta, a, b), _fault_text(meta, b, a)]))
     return nodes, edges
 
@@ -265,7 +267,7 @@ def summary_html(summary: dict | None, source: str = "") -> str:
         if summary.get(key):
             rows.append((key, summary[key]))
     if summary.get("rejected"):
-        rows.append(("dropped by the plant", ", ".join(f"{s}: {n}" for s, n in summary["rejected"].items())))
+        rows.append(("dropped by the coordinator", ", ".join(f"{s}: {n}" for s, n in summary["rejected"].items())))
     names = {"final J": "dmpc-final-J", "closed-loop cost": "dmpc-cost", "fallbacks": "dmpc-fallbacks-total",
              "fallbacks per agent": "dmpc-fallbacks-per-agent"}
     body = "".join(f"<tr><td>{html.escape(str(k))}</td><td class='{names.get(k, '')}'>{html.escape(str(v))}</td></tr>"

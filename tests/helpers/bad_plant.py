@@ -88,9 +88,9 @@ class BadPlant(example.OutsidePlant):
     def _forge(self) -> None:
         run, k, M, N = self.run, self.k, len(example.NAMES), 10
         forged = [
-            (keys.release(run), Release(run=run, k=k, iteration=0, x=np.zeros(2 * M), centres=np.zeros(2 * M),
+            (keys.release(run), Release(run=run, k=k, round=0, x=np.zeros(2 * M), centres=np.zeros(2 * M),
                                         sizes=np.ones(M), assumed=np.full((M, 2), -1, dtype=np.int64))),
-            (keys.plan(run, "1"), PlanMessage(run=run, k=k, iteration=0, sender="1", status="solved",
+            (keys.plan(run, "1"), PlanMessage(run=run, k=k, round=0, sender="1", status="solved",
                                               z=np.full((N + 1, 2), 2.0), v=np.full((N, 1), 2.0), cost=0.0,
                                               solve_time=0.0, qp_iterations=1)),
             (keys.ready(run, "1"), Ready(run=run, sender="1", design_digest="forged", pid=1)),

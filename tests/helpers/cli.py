@@ -14,7 +14,7 @@ def call(monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
     into Ctrl-C nor redirects C-level stdout here.
     """
     monkeypatch.setattr(sys, "argv", ["dmpc", *argv])
-    monkeypatch.setattr("dmpc.console._silenced", True)
+    monkeypatch.setattr("dmpc.terminal.console._silenced", True)
     monkeypatch.setattr(dmpc.runtime.signals, "sigterm_as_interrupt", lambda: None)
     code = 0
     try:

@@ -16,8 +16,8 @@ NAMES = ("1", "2", "3", "4")
 def prepare_inputs(folder: Path, overrides: dict) -> Path:
     """scenario.yaml, design.json and run.json of the paper's example with ``overrides``."""
     from dmpc.runtime.launcher import prepare_run_folder
-    from dmpc.runtime.setup import prepare
     from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
 
     prepare_run_folder(folder, prepare(load_scenario(ROOT / "scenarios" / "paper.yaml", overrides)))
     return folder

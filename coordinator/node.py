@@ -1,0 +1,339 @@
+"""The coordinator's node: readiness, releases, deadlines, records, stop.
+
+Hosts the pure Coordinator on a bus (with the simulated plant in it, or a link to a plant outside). In ``realtime`` mode step k is released at
+``t0 + k dt`` on the bus clock and each round has a deadline; in ``lockstep`` the next step
+follows as soon as the last plan is in.
+
+Whatever arrives is decoded here; a plan whose sender matches its key goes to the coordinator,
+which accepts it or says why not. Invalid messages are dropped and counted per sender
+(``rejected``, in the run's summary), never raised.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Protocol
+
+from dmpc.bus import keys
+from dmpc.bus.codec import MAX_REASON, DecodeError, VersionMismatch, decode, encode
+from dmpc.bus.interface import Bus
+from dmpc.bus.messages import PROTOCOL_VERSION, PlanMessage, Ready, Stop, design_claim
+from dmpc.coordinator.barrier import (
+    ApplyInputs,
+    Coordinator,
+    PlanRefused,
+    RoundOpened,
+    RunFinished,
+    SendRelease,
+    StepCompleted,
+)
+from dmpc.core.steps import StepRecord
+from dmpc.plant.link import PlantLink
+from dmpc.security.rejects import STALE, Rejections
+
+log = logging.getLogger("dmpc.plant")
+NAMED_DESIGNS = 3  # differing designs spelled out in a start-up failure (the Stop reason is bounded)
+
+
+def _shown(text: str) -> str:
+    """``text`` (which may come from the sender) with non-printable characters as ``?``."""
+    return "".join(c if c.isprintable() else "?" for c in text)
+
+
+def design_text(digest: str, scenario: str = "", horizon: int = 0) -> str:
+    """``<digest> (scenario '<name>', horizon <N>)``, leaving out what is unknown."""
+    known = ([f"scenario '{_shown(scenario)}'"] if scenario else []) + ([f"horizon {horizon}"] if horizon else [])
+    return _shown(digest) + (f" ({', '.join(known)})" if known else "")
+
+
+class RunObserver(Protocol):
+    """Who watches the run from outside it (the live view's telemetry): told of each completed
+    step and of the end; it must never block the coordinator."""
+
+    def step(self, record: StepRecord, node: "CoordinatorNode") -> None:
+        """A step completed; ``node`` tells who is alive, ready, and what was dropped."""
+        ...
+
+    def summary(self, summary: dict) -> None:
+        """The run ended with ``summary`` (``summary.json``'s content)."""
+        ...
+
+    def close(self) -> None:
+        ...
+
+
+class CoordinatorNode:
+    """The coordinator on a bus, with the simulated plant or the link to a plant outside.
+
+    Parameters
+    ----------
+    bus : Bus
+    coordinator : Coordinator
+        Built with this bus's clock (``clock=bus.now``), so that the records have the plans'
+        latency and the steps' times.
+    design_digest : str
+        Every agent's Ready must carry the same digest.
+    on_step : callable StepRecord -> None
+        Called for every completed step (the run folder appends it).
+    mode : {"lockstep", "realtime"}
+    dt : float
+        Step period in realtime mode (seconds).
+    deadline : float or None
+        Seconds after a round's release after which missing plans are missed.
+    scenario : str
+        The scenario's name, to say how an agent's differing design differs.
+    telemetry : RunObserver, optional
+        Gets every completed step after ``on_step``, for observers (it never blocks).
+    plant_timeout : float or None
+        With a plant outside (the coordinator built with ``plant=None``): seconds to wait for the
+        state of each step (docs/protocol.md); x(0) is awaited with the agents' readiness.
+    """
+
+    def __init__(self, bus: Bus, coordinator: Coordinator, design_digest: str,
+                 on_step: Callable[[StepRecord], None], mode: str = "lockstep", dt: float = 0.1,
+                 deadline: float | None = None, scenario: str = "", telemetry: RunObserver | None = None,
+                 plant_timeout: float | None = None) -> None:
+        self.bus = bus
+        self.coordinator = coordinator
+        self.run_id = coordinator.run_id
+        self.names = coordinator.names
+        self.design_digest = design_digest
+        self.scenario = scenario
+        self.mismatched: dict[str, Ready] = {}  # the latest Ready with another design, per agent
+        self.on_step = on_step
+        self.mode = mode
+        self.dt = dt
+        self.deadline = deadline
+        self.telemetry = telemetry
+        self.ready: set[str] = set()
+        self.alive: set[str] = set()
+        self.started = False
+        self.finished = False
+        self.failure = ""
+        sources = [] if coordinator.plant is not None else keys.state_sources(self.names)
+        # how this process names itself: the plant process hosts the coordinator unless the plant is outside
+        self.who = "plant" if coordinator.plant is not None else "coordinator"
+        self.rejects = Rejections(log, self.who, bus.now, self.names + sources)
+        self.rejected: dict[str, int] = self.rejects.counts
+        self.other_versions: dict[str, int | None] = {}  # per agent or source: the protocol version it spoke
+        self.x0 = None  # x(0) from a plant outside, once complete
+        self.link: PlantLink | None = None
+        if coordinator.plant is None:
+            self.link = PlantLink(bus, coordinator.system, self.run_id, self.rejects, self._on_measured, self.fail,
+                                  timeout=plant_timeout if plant_timeout is not None else 10.0)
+            self.link.await_first()
+        self._t0 = 0.0
+        self._opened_step = -1  # the last step whose time was started
+        self._stop_payload: bytes | None = None
+        bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan, hot=True)
+        bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
+        bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
+
+    def announce(self) -> None:
+        self.bus.declare_alive(keys.alive(self.run_id, keys.COORDINATOR_ROLE))
+
+    # ------------------------------------------------------------------ receive
+    def _reject(self, sender: str, why: str) -> None:
+        self.rejects(sender, why)
+
+    def _decoded(self, name: str, payload: bytes) -> object | None:
+        """The message in ``payload``, or None (counted against ``name``) if it does not decode."""
+        try:
+            return decode(payload)
+        except DecodeError as exc:
+            if isinstance(exc, VersionMismatch) and name in self.names:
+                self.other_versions[name] = exc.version
+            self._reject(name, str(exc))
+            return None
+
+    def _on_ready(self, key: str, payload: bytes) -> None:
+        name = keys.last_chunk(key)
+        msg = self._decoded(name, payload)
+        if msg is None:
+            return
+        if not isinstance(msg, Ready) or msg.run != self.run_id or msg.sender != name or name not in self.names:
+            self._reject(name, "invalid ready message")
+            return
+        if msg.design_digest != self.design_digest:
+            # dropped rather than fatal: anyone on the bus could send it; the run waits for a
+            # matching Ready and, if none comes, its start-up failure names the difference
+            self.mismatched[name] = msg
+            self._reject(name, f"design: {self._mismatch_text(name)}; this {self.who} uses design "
+                               f"{self._own_design()}; give every process the same scenario")
+            return
+        self.mismatched.pop(name, None)
+        self.ready.add(name)
+        if self.started:
+            if self.coordinator.on_agent_back(name):
+                log.warning("coordinator: agent %s back at step %d; waited for again from the next round", name,
+                            self.coordinator.k)
+        else:
+            self._maybe_start()
+
+    def _mismatch_text(self, name: str) -> str:
+        msg = self.mismatched[name]
+        return f"{design_claim(name, _shown(msg.design_digest))}{design_text('', msg.scenario, msg.horizon)}"
+
+    def _own_design(self) -> str:
+        return design_text(self.design_digest, self.scenario, self.coordinator.N)
+
+    def design_mismatch(self, names: list[str]) -> str:
+        """How the designs of those of ``names`` that sent another design differ ("" if none did).
+
+        Their last ``Ready`` is what is named: a forged one can mislead this text, but it never
+        stops the run before the start-up timeout.
+        """
+        differing = [name for name in names if name in self.mismatched]
+        if not differing:
+            return ""
+        shown = [self._mismatch_text(name) for name in differing[:NAMED_DESIGNS]]
+        if len(differing) > NAMED_DESIGNS:
+            shown.append(f"and {len(differing) - NAMED_DESIGNS} more")
+        head = "a design differs" if len(differing) == 1 else f"{len(differing)} designs differ"
+        return (f"{head} from this {self.who}'s: {'; '.join(shown)}; this {self.who} uses design {self._own_design()}; "
+                "give every process the same scenario and --set options")
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        if self.link is not None:
+            self.link.on_alive(keys.last_chunk(key), alive)
+        name = keys.subsystem_of(keys.last_chunk(key), keys.AGENT_PREFIX)
+        if name not in self.names:
+            return
+        if alive:
+            self.alive.add(name)
+            return
+        self.alive.discard(name)
+        self.ready.discard(name)
+        if self.started and not self.finished:
+            log.warning("coordinator: agent %s lost at step %d; applying its fallback", name, self.coordinator.k)
+            self._carry_out(self.coordinator.on_agent_lost(name))
+
+    def _on_plan(self, key: str, payload: bytes) -> None:
+        name = keys.last_chunk(key)
+        msg = self._decoded(name, payload)
+        if msg is None:
+            return
+        if not isinstance(msg, PlanMessage) or msg.sender != name:
+            self._reject(name, "not a plan from its key's agent")
+            return
+        actions, problem = self.coordinator.on_plan(msg)
+        if problem is not None:
+            if problem != STALE:  # late plans after a deadline are normal in realtime
+                self._reject(name, problem)
+            return
+        self._carry_out(actions)
+
+    @staticmethod
+    def _log_refusal(refusal: PlanRefused) -> None:
+        """Warn about an agent's first plan outside U_i; later ones are only counted."""
+        if refusal.count == 1:
+            log.warning("coordinator: refused the plan of agent %s at step %d round %d: its inputs leave U_%s by %.3g; "
+                        "its fallback applies (further refusals are counted in summary.json, inputs_refused)",
+                        refusal.name, refusal.k, refusal.round, refusal.name, refusal.excess)
+
+    # ------------------------------------------------------------------ act
+    def _maybe_start(self) -> None:
+        if not self.started and self.ready >= set(self.names) and (self.link is None or self.x0 is not None):
+            self.started = True
+            self._t0 = self.bus.now()
+            self._carry_out(self.coordinator.start(self.x0))
+
+    def _on_measured(self, k: int, x) -> None:
+        """The plant outside measured x(k) (complete)."""
+        if not self.started:
+            self.x0 = x
+            self._maybe_start()
+        elif not self.finished:
+            self._carry_out(self.coordinator.on_state(k, x))
+
+    def present(self) -> bool:
+        """True while an agent, or a plant outside, still holds its liveliness token."""
+        return bool(self.alive) or (self.link is not None and any(self.link.alive.values()))
+
+    def startup_failure(self, timeout: float) -> str:
+        """Why the run did not start within ``timeout`` s: the agents (and plant) missing, the
+        designs and protocol versions that differ."""
+        missing = sorted(set(self.names) - self.ready)
+        parts = []
+        if missing:
+            parts.append(f"agents {', '.join(missing)} not ready within {timeout:g} s "
+                         f"(alive: {', '.join(sorted(self.alive)) or 'none'}; run id '{self.run_id}')")
+        if self.link is not None and self.x0 is None:
+            parts.append(self.link.describe_missing(0, f"within {timeout:g} s"))
+        versions = self.version_mismatch()
+        mismatch = self.design_mismatch(missing)
+        return f"{self.who}: " + "; ".join(([versions] if versions else []) + ([mismatch] if mismatch else []) + parts)
+
+    def version_mismatch(self) -> str:
+        """Which agents spoke another protocol version ("" if none)."""
+        if not self.other_versions:
+            return ""
+        said = [f"agent {name} speaks {'no protocol version' if v is None else f'protocol version {v}'}"
+                for name, v in sorted(self.other_versions.items())[:NAMED_DESIGNS]]
+        return f"{'; '.join(said)}; this coordinator speaks protocol version {PROTOCOL_VERSION}"
+
+    def _carry_out(self, actions: list) -> None:
+        # build and write the records after the next releases are out
+        completed = [action for action in actions if isinstance(action, StepCompleted)]
+        try:
+            self._dispatch([a for a in actions if not isinstance(a, StepCompleted)])
+        finally:
+            for action in completed:
+                rec = action.record
+                self.on_step(rec)
+                if self.telemetry is not None:
+                    self.telemetry.step(rec, self)
+
+    def _dispatch(self, actions: list) -> None:
+        for n, action in enumerate(actions):
+            if isinstance(action, SendRelease):
+                rel = action.release
+                if self.mode == "realtime" and rel.round == 0 and rel.k > 0:
+                    wait = self._t0 + rel.k * self.dt - self.bus.now()
+                    if wait > 0:
+                        self.bus.call_later(wait, lambda rest=actions[n:]: self._dispatch(rest))
+                        return
+                if rel.round == 0:
+                    self._open_step(rel.k)  # the step's time includes sending its release
+                self.bus.publish(keys.release(self.run_id), encode(rel))
+            elif isinstance(action, RoundOpened):
+                if action.round == 0 and self._opened_step != action.k:
+                    self._open_step(action.k)  # no release (every agent lost)
+                if self.deadline is not None:
+                    k, r = action.k, action.round
+                    self.bus.call_later(self.deadline, lambda k=k, r=r: self._carry_out(self.coordinator.on_deadline(k, r)))
+            elif isinstance(action, ApplyInputs):
+                self.link.apply(action.k, action.u)
+            elif isinstance(action, PlanRefused):
+                self._log_refusal(action)
+            elif isinstance(action, RunFinished):
+                self._stop(action.reason)
+
+    def _open_step(self, k: int) -> None:
+        self.coordinator.step_opened()
+        self._opened_step = k
+
+    def _stop(self, reason: str) -> None:
+        self.finished = True
+        if self.link is not None:
+            self.link.stop()
+        msg = Stop(run=self.run_id, k=self.coordinator.k, reason=reason[:MAX_REASON])
+        self._stop_payload = encode(msg)
+        self.bus.publish(keys.control(self.run_id), self._stop_payload)
+
+    def repeat_stop(self) -> None:
+        """Send the run's ``Stop`` again (agents ignore copies): a lost one must not leave an agent
+        to find the plant gone instead of the run finished."""
+        if self._stop_payload is not None:
+            self.bus.publish(keys.control(self.run_id), self._stop_payload)
+
+    def fail(self, reason: str) -> None:
+        """Abort the run: tell every agent and stop."""
+        if not self.finished:
+            self.failure = reason
+            self._stop(f"failed: {reason}")
+
+    def abort(self, reason: str = "aborted") -> None:
+        if not self.finished:
+            self.failure = reason
+            self._stop(reason)

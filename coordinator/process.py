@@ -1,0 +1,138 @@
+"""``dmpc coordinator`` (and ``dmpc plant``, which hosts the simulated plant with it): the step barrier as a
+process on the Zenoh bus."""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from dmpc.bus.interface import Bus
+from dmpc.coordinator.barrier import Coordinator
+from dmpc.coordinator.node import CoordinatorNode, RunObserver
+from dmpc.core.steps import StepRecord
+from dmpc.methods import terminal_policy
+from dmpc.plant.dynamics import Plant
+from dmpc.plant.models import make_plant
+from dmpc.prepared import Prepared
+from dmpc.records.agent_reports import merge_agent_reports, report_path
+from dmpc.records.files import LOGS, STEP_LOG
+from dmpc.records.run_folder import RecordWriteError
+from dmpc.records.session import RunRecorder
+from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
+
+LINGER = 2.0
+REPORT_WAIT = 1.0
+STOP_REPEAT = 0.2
+
+
+@dataclass(frozen=True)
+class CoordinatorOutcome:
+    code: int
+    message: str
+    summary: dict | None
+
+
+def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callable[[StepRecord], None],
+                     plant: Plant | None, telemetry: RunObserver | None = None,
+                     plant_timeout: float | None = None) -> CoordinatorNode:
+    """The coordinator of a prepared run, as a node on ``bus`` (not announced yet), timed by the
+    bus's clock; ``plant`` is the simulated plant it steps, None for a plant outside.
+
+    The one place that builds the coordinator from a prepared run: ``dmpc coordinator``,
+    ``dmpc plant`` and ``dmpc simulate`` (:mod:`dmpc.runtime.inprocess`) all do it here.
+    """
+    policy = terminal_policy(prepared.method, prepared.system, prepared.design)
+    coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id, policy=policy,
+                              clock=bus.now)
+    return CoordinatorNode(bus, coordinator, prepared.digest, on_step, mode=prepared.mode, dt=prepared.dt,
+                           deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry,
+                           plant_timeout=plant_timeout)
+
+
+def run_coordinator(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, startup_timeout: float,
+                    runtime: str = "multi-process", external_plant: bool = False,
+                    plant_timeout: float = 10.0, telemetry: RunObserver | None = None) -> CoordinatorOutcome:
+    """Wait for every agent, step the run to the end, write the records.
+
+    ``external_plant``: the plant is outside this process (docs/protocol.md); x(0) is awaited with
+    the agents, and each step's state for at most ``plant_timeout`` seconds. ``telemetry`` (the live
+    view's, :func:`dmpc.watch.telemetry.open_telemetry`) sees every completed step and the end.
+    Ctrl-C (or SIGTERM) stops the agents and keeps every completed step in the run folder.
+    """
+    outside = {"plant": {"model": "outside"}} if external_plant else {}  # what the summary says of the plant
+    node = coordinator_node(prepared, bus, run_id, recorder.on_step, None if external_plant else make_plant(prepared),
+                            telemetry=telemetry, plant_timeout=plant_timeout if external_plant else None)
+    coordinator = node.coordinator
+    node.announce()
+    try:
+        if not bus.run(until=lambda: node.started or node.finished, timeout=startup_timeout):
+            reason = node.startup_failure(startup_timeout)
+            node.fail(reason)
+            summary = recorder.complete(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
+                                        rejected_reasons=node.rejects.reasons)
+            finish(bus, node, summary, telemetry, recorder)
+            return CoordinatorOutcome(EXIT_FAILED, reason, summary)
+        bus.run(until=lambda: node.finished)
+    except RecordWriteError as exc:
+        reason = f"{node.who}: {exc}; the run stopped after {recorder.steps} steps, which are kept in {STEP_LOG}"
+        node.fail(reason)
+        summary = recorder.complete_if_possible(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
+                                                rejected_reasons=node.rejects.reasons,
+                                                inputs_refused=coordinator.inputs_refused)
+        finish(bus, node, summary, telemetry, recorder)
+        return CoordinatorOutcome(EXIT_FAILED, reason, summary)
+    except KeyboardInterrupt:
+        node.abort("aborted")
+        summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", rejected=node.rejected,
+                                    rejected_reasons=node.rejects.reasons, inputs_refused=coordinator.inputs_refused)
+        finish(bus, node, summary, telemetry, recorder)
+        return CoordinatorOutcome(EXIT_INTERRUPTED, f"{node.who}: interrupted after {coordinator.k} steps", summary)
+    summary = recorder.complete(**outside, runtime=runtime, failure=node.failure or None, rejected=node.rejected,
+                                rejected_reasons=node.rejects.reasons, duplicates=coordinator.duplicates,
+                                inputs_refused=coordinator.inputs_refused)
+    finish(bus, node, summary, telemetry, recorder)
+    if node.failure:
+        return CoordinatorOutcome(EXIT_FAILED, f"{node.who}: {node.failure}", summary)
+    if summary.get("verdict") == "failed":
+        kinds = ", ".join(dict.fromkeys(f["kind"] for f in summary["failures"]))
+        return CoordinatorOutcome(EXIT_VERDICT, f"{node.who}: finished {coordinator.k} steps; verdict failed ({kinds})", summary)
+    return CoordinatorOutcome(EXIT_OK, f"{node.who}: finished {coordinator.k} steps", summary)
+
+
+def finish(bus: Bus, node: CoordinatorNode, summary: dict | None, telemetry: RunObserver | None,
+           recorder: RunRecorder | None = None) -> None:
+    """Tell observers how the run ended, wait for the agents to leave, then stop the telemetry.
+
+    In a run folder made by ``dmpc run`` (it has ``logs/``), the agents' reports are merged into
+    the summary once they have left, so the summary has them even if the launcher is gone.
+    """
+    if telemetry is not None and summary is not None:
+        telemetry.summary(summary)
+    try:
+        linger(bus, node)
+    finally:
+        if telemetry is not None:
+            telemetry.close()
+    if summary is not None and recorder is not None and (recorder.folder.path / LOGS).is_dir():
+        out = recorder.folder.path
+        deadline = time.monotonic() + REPORT_WAIT  # an agent writes its report just after leaving
+        while time.monotonic() < deadline and not all(report_path(out, n).exists() for n in node.names):
+            time.sleep(0.02)
+        merge_agent_reports(out, node.names)
+
+
+def linger(bus: Bus, node: CoordinatorNode, timeout: float = LINGER) -> None:
+    """Keep the session open until the agents (and a plant outside), told to stop, have left (at most ``timeout`` s).
+
+    Closing at once could withdraw the coordinator's liveliness token before the Stop message has
+    reached every agent (through a router they travel different paths), and an agent would
+    then report a lost coordinator instead of a finished run. Stop is repeated every
+    ``STOP_REPEAT`` s meanwhile, in case a copy was lost (injected loss drops it too).
+    """
+    end = bus.now() + timeout
+    try:
+        while node.present() and bus.now() < end:
+            if not bus.run(until=lambda: not node.present(), timeout=min(STOP_REPEAT, end - bus.now())):
+                node.repeat_stop()
+    except KeyboardInterrupt:
+        pass

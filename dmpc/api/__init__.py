@@ -1,0 +1,218 @@
+"""The Python entry points: load a scenario, design it, simulate or run it, read a run back.
+
+Every function takes plain objects (a path, a mapping of numpy arrays, or a
+:class:`~dmpc.scenario.Scenario`) and returns a frozen result indexed by subsystem name. The
+command line is a layer on the same steps. Nothing is printed unless ``progress=True``.
+"""
+from __future__ import annotations
+
+import contextlib
+import re
+import secrets
+import tempfile
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Union
+
+from dmpc.api.result import Result, load_run
+from dmpc.bus import keys
+from dmpc.core.errors import DmpcError
+from dmpc.offline.record import Design
+from dmpc.plant.models import PlantModelError
+from dmpc.prepared import PlantFunction
+from dmpc.records.files import LOGS, log_file
+from dmpc.records.session import RunRecorder
+from dmpc.runtime.hosting import check_per_process, group_agents
+from dmpc.runtime.inprocess import record_run
+from dmpc.runtime.launcher import default_topology, launch
+from dmpc.scenario import Scenario, validate_scenario
+from dmpc.scenario import load_scenario as load_file
+from dmpc.scenario.state_space import from_state_spaces
+from dmpc.setup import prepare
+from dmpc.setup.plant import function_reference, load_plant_function, with_plant_function
+from dmpc.terminal.exit_codes import EXIT_INTERRUPTED, EXIT_OK
+
+ScenarioLike = Union[str, Path, Mapping, Scenario]
+
+__all__ = ["RunError", "design", "load_run", "load_scenario", "run", "simulate"]
+
+
+class RunError(DmpcError, RuntimeError):
+    """A run that could not complete (a process failed, the agents never became ready, ...).
+
+    A run that completes with constraint violations is not an error: its ``Result.verdict`` is
+    ``failed``.
+    """
+
+
+def load_scenario(source: ScenarioLike, /, **overrides) -> "Scenario":
+    """A validated scenario from a YAML file, a mapping (numpy arrays allowed) or a Scenario.
+
+    In a mapping, a subsystem, a coupling or a family's subsystem or coupling may give a
+    python-control model, ``system=control.ss(...)``, in place of A and B: its labels name the
+    states and inputs, and its time base sets ``time`` and ``dt``
+    (:mod:`dmpc.scenario.state_space`).
+
+    Parameters
+    ----------
+    source : str, Path, mapping or Scenario
+    **overrides
+        Fields to change, as ``--set`` does: ``steps=10``, ``horizon=5``; a nested field with
+        ``__`` (``options__method="centralized"``) or a dotted key (``**{"family.M": 16}``).
+
+    Returns
+    -------
+    Scenario
+
+    Raises
+    ------
+    dmpc.scenario.ScenarioError
+        One line naming the field at fault.
+    """
+    pairs = {key.replace("__", "."): value for key, value in overrides.items()}
+    if isinstance(source, Scenario):
+        if not pairs:
+            return source
+        data = source.model_dump(mode="python")
+        return validate_scenario({k: v for k, v in data.items() if v is not None}, pairs, source=source.name)
+    if isinstance(source, Mapping):
+        return validate_scenario(from_state_spaces(source), pairs)
+    return load_file(source, pairs)
+
+
+def _prepared(scenario: ScenarioLike, method: str | None = None, steps: int | None = None):
+    extra = {}
+    if method is not None:
+        extra["options__method"] = method
+    if steps is not None:
+        extra["steps"] = steps
+    return prepare(load_scenario(scenario, **extra))
+
+
+def design(scenario: ScenarioLike) -> Design:
+    """The offline design of a scenario: gains, terminal set, sigma, horizon and checks.
+
+    The same as ``dmpc design --json`` (``Design.json`` is that JSON).
+
+    Raises
+    ------
+    dmpc.design.DesignError
+        The design cannot work (e.g. an infeasible start at the given horizon).
+    """
+    prepared = _prepared(scenario)
+    return Design.from_json(prepared.design_json(), prepared.names)
+
+
+@contextlib.contextmanager
+def _run_folder(out: str | Path | None) -> Iterator[tuple[Path, bool]]:
+    """``(folder, temporary)``: ``out``, or a temporary folder removed afterwards."""
+    if out is not None:
+        yield Path(out), False
+        return
+    with tempfile.TemporaryDirectory(prefix="dmpc-run-") as tmp:
+        yield Path(tmp) / "run", True
+
+
+def simulate(scenario: ScenarioLike, *, method: str | None = None, out: str | Path | None = None,
+             plant: PlantFunction | None = None, progress: bool = False, steps: int | None = None) -> Result:
+    """Run every agent, the coordinator and the plant in this process (as ``dmpc simulate``).
+
+    Parameters
+    ----------
+    scenario : path, mapping or Scenario
+    method : str, optional
+        The control method (``tv-box``, ``tv-box-opt``, ``fixed-box``, ``ellipsoid``,
+        ``ellipsoid-adaptive``, ``centralized``); None: the scenario's ``options.method``.
+    out : path, optional
+        Run folder to write; None: a temporary one (``Result.folder`` is then None).
+    plant : callable (x, u, k) -> x_next, optional
+        Your own plant in place of the linear one: x (n,) and u (m,) in the global order.
+        An exception in it stops the run with :class:`PlantModelError`, whose cause is yours.
+    progress : bool
+        Show a progress bar (stderr).
+    steps : int, optional
+        Steps to run instead of the scenario's.
+
+    Returns
+    -------
+    Result
+
+    Raises
+    ------
+    RunError
+        The run could not complete.
+    """
+    prepared = _prepared(scenario, method, steps)
+    if plant is not None:
+        prepared = with_plant_function(prepared, plant)
+    with _run_folder(out) as (folder, temporary):
+        with RunRecorder(folder, prepared, show_progress=progress) as recorder:
+            _, failure = record_run(prepared, recorder)
+        if failure:
+            raise RunError(f"the run of '{prepared.name}' failed: {failure}")
+        return load_run(folder, in_temporary_folder=temporary)
+
+
+def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | None = None,
+        plant: PlantFunction | None = None, progress: bool = False, steps: int | None = None,
+        startup_timeout: float = 60.0, topology: str | None = None, agents_per_process: int = 1) -> Result:
+    """Run the plant and one process per agent over Zenoh on this machine (as ``dmpc run``).
+
+    Every process is stopped when the run ends, fails, or is interrupted (Ctrl-C re-raises
+    KeyboardInterrupt after the processes are gone; the completed steps stay in ``out``).
+
+    Parameters
+    ----------
+    scenario, out, method, progress, steps
+        As for :func:`simulate`.
+    plant : callable (x, u, k) -> x_next, optional
+        Your own plant, passed to the plant process as ``--model``: it must be importable by
+        name, i.e. defined at the top level of a module (not in a notebook or ``__main__``).
+    startup_timeout : float
+        Seconds the processes wait for each other.
+    topology : {"mesh", "star"}, optional
+        How the processes connect; the default depends on the number of agent processes.
+    agents_per_process : int
+        Agents served by each agent process (``dmpc run --agents-per-process``); 1 by default.
+
+    Returns
+    -------
+    Result
+
+    Raises
+    ------
+    RunError
+        A process failed.
+    PlantModelError
+        The plant function failed in the plant process (the message holds its traceback).
+    ValueError
+        ``plant`` cannot be imported by another process, or ``agents_per_process`` is below 1.
+    """
+    check_per_process(agents_per_process)
+    prepared = _prepared(scenario, method, steps)
+    reference = None
+    if plant is not None:
+        reference = function_reference(plant)
+        function, _ = load_plant_function(reference)
+        prepared = with_plant_function(prepared, function, reference)
+    if prepared.method == "centralized":  # one QP in one process: no agents to start
+        return simulate(prepared.scenario, out=out, plant=plant, progress=progress)
+    run_id = re.sub(r"[^A-Za-z0-9_.-]", "-", prepared.name)[:55] + "-" + secrets.token_hex(4)
+    with _run_folder(out) as (folder, temporary):
+        outcome = launch(prepared, folder, run_id, startup_timeout=startup_timeout, show_progress=progress,
+                         topology=topology or default_topology(len(group_agents(prepared.names, agents_per_process))),
+                         plant_model=reference, agents_per_process=agents_per_process)
+        if outcome.code == EXIT_INTERRUPTED:
+            raise KeyboardInterrupt
+        if outcome.code != EXIT_OK:
+            _raise_failure(folder, outcome.message, plant is not None)
+        return load_run(folder, in_temporary_folder=temporary)
+
+
+def _raise_failure(folder: Path, message: str, has_function: bool) -> None:
+    log_path = folder / LOGS / log_file(keys.PLANT_ROLE)
+    log = log_path.read_text(errors="replace") if log_path.is_file() else ""
+    if has_function and ("PlantModelError" in log or "the plant function" in log):
+        tail = "\n".join(log.strip().splitlines()[-40:])
+        raise PlantModelError(f"the plant function failed in the plant process; its log:\n{tail}")
+    raise RunError(message)

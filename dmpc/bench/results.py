@@ -1,0 +1,366 @@
+"""``dmpc bench``: run the benchmarks of dmpc.bench.measures and write benchmarks/RESULTS.md."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from rich.progress import Progress
+
+from dmpc.bench import common, measures
+from dmpc.bench.scale import HEADER as SCALE_HEADER
+from dmpc.bench.scale import markdown_row as scale_markdown_row
+from dmpc.bench.scale import scale_row
+from dmpc.terminal.console import stderr_console
+
+FULL = {"qp_horizons": [5, 10, 20], "qp_repeat": 20,
+        "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
+        "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
+        "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)]}
+QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
+         "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": []}
+"""``floor_sets``: floor and run alternated that many times at M = 4 (once at larger M). ``scale``:
+rows (M, agents per process, steps) of the chain run with agents hosted many to a process."""
+
+HISTORY_HEADING = "## History: earlier measurements (dated, not regenerated)"
+"""Everything of a report from this heading on is written by hand and kept when it is regenerated."""
+
+
+def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
+    plan = QUICK if quick else FULL
+    tasks = (len(plan["qp_horizons"]) + len(plan["runtime"]) + 3 * len(plan["baselines"]) + len(plan["design"])
+             + len(plan["scale"]))
+    results: dict = {"machine": common.machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                     "quick": quick, "qp": [], "runtime": [], "inprocess": [], "central_osqp": [],
+                     "central_cvxpy": [], "design": [], "scale": []}
+    started = time.monotonic()
+    with Progress(console=stderr_console(), transient=True, disable=not show_progress) as progress, \
+            common.workdir() as tmp:
+        task = progress.add_task("benchmarks", total=tasks)
+
+        def step(label: str) -> None:
+            progress.update(task, advance=1, description=label)
+
+        for N in plan["qp_horizons"]:
+            results["qp"].append(measures.qp_solve_times(N, plan["qp_repeat"], root))
+            step(f"QP N={N}")
+        qp10 = next((q for q in results["qp"] if q["N"] == 10), None) or measures.qp_solve_times(10, 1, root)
+        for M, steps in plan["runtime"]:
+            results["runtime"].append(measures.run_against_floor(M, steps, qp10["us_p50"], Path(tmp), root,
+                                                              sets=plan["floor_sets"] if M == 4 else 1))
+            step(f"multi-process M={M}")
+        for M in plan["baselines"]:
+            results["inprocess"].append(measures.run_inprocess(M, plan["baseline_steps"], root))
+            step(f"in-process M={M}")
+            results["central_osqp"].append(measures.run_central_osqp(M, plan["baseline_steps"], root))
+            step(f"centralised OSQP M={M}")
+            results["central_cvxpy"].append(measures.run_central_cvxpy(M, plan["baseline_steps"], root))
+            step(f"centralised CVXPY M={M}")
+        for M in plan["design"]:
+            results["design"].append(measures.design_scaling(M, root, compare=M <= plan["design_compare"]))
+            step(f"design M={M}")
+        for M, per_process, steps in plan["scale"]:
+            results["scale"].append(scale_row(M, per_process, steps, Path(tmp), root))
+            step(f"hosted M={M}")
+    results["seconds"] = time.monotonic() - started
+    results["machine"]["load_average_end"] = common.load_average()
+    results["headline"] = headline(results)
+    return results
+
+
+def headline(results: dict) -> dict:
+    qp10 = next((q for q in results["qp"] if q["N"] == 10), None)
+    m4 = next((r for r in results["runtime"] if r["M"] == 4 and r.get("completed")), None)
+    done = [r["M"] for r in results["runtime"] if r.get("completed")]
+    floor = m4.get("floor") if m4 and m4.get("floor", {}).get("completed") else None
+    return {
+        "qp_solve_us_p50": qp10["us_p50"] if qp10 else None,
+        "step_ms_p50_m4": m4["step_ms_p50"] if m4 else None,
+        "step_ms_p99_m4": m4["step_ms_p99"] if m4 else None,
+        "floor_step_ms_p50_m4": floor["step_ms_p50"] if floor else None,
+        "floor_step_ms_p99_m4": floor["step_ms_p99"] if floor else None,
+        "step_over_floor_p50_m4": m4.get("over_floor_p50") if m4 else None,
+        "step_over_floor_p99_m4": m4.get("over_floor_p99") if m4 else None,
+        "rss_mb_per_agent": max((r["rss_mb_per_agent"] for r in results["runtime"] if r.get("rss_mb_per_agent")),
+                                default=None),
+        "max_agents_run": max(done + [r["M"] for r in results.get("scale", []) if r.get("completed")], default=0),
+        "startup_s_m128": _at(results["runtime"], 128, "startup_s"),
+        "design_s_m1024": _at(results["design"], 1024, "design_s"),
+        "step_ms_p50_m1024_hosted": _at(results.get("scale", []), 1024, "step_ms_p50"),
+    }
+
+
+def _at(rows: list[dict], M: int, key: str):
+    """``key`` of the completed row of ``M`` (a design row counts as completed), or None."""
+    row = next((r for r in rows if r["M"] == M and r.get("completed", True)), None)
+    return None if row is None else row.get(key)
+
+
+def targets(results: dict) -> list[tuple[str, str, str]]:
+    """(target, measured, met) for each performance target dmpc is held to; "-" where not measured."""
+    rows: list[tuple[str, str, str]] = []
+
+    def row(target: str, measured: str, met: bool | None) -> None:
+        rows.append((target, measured, "-" if met is None else ("yes" if met else "no")))
+
+    qp10 = next((q for q in results["qp"] if q["N"] == 10), None)
+    row("local QP, N = 10: median <= 60 us", f"{qp10['us_p50']:.1f} us" if qp10 else "-",
+        qp10["us_p50"] <= 60 if qp10 else None)
+    m4 = next((r for r in results["runtime"] if r["M"] == 4 and r.get("completed")), None)
+    row("M = 4 lockstep step: median <= 1 ms", f"{m4['step_ms_p50']:.2f} ms" if m4 else "-",
+        m4["step_ms_p50"] <= 1 if m4 else None)
+    row("M = 4 lockstep step: p99 <= 3 ms", f"{m4['step_ms_p99']:.2f} ms" if m4 else "-",
+        m4["step_ms_p99"] <= 3 if m4 else None)
+    ratio50, ratio99 = (m4.get("over_floor_p50"), m4.get("over_floor_p99")) if m4 else (None, None)
+    row("M = 4 lockstep step: median <= 1.5x the bus floor's (same run)",
+        f"{ratio50:.2f}x ({m4['step_ms_p50']:.2f} / {m4['floor']['step_ms_p50']:.2f} ms)" if ratio50 else "-",
+        ratio50 <= 1.5 if ratio50 else None)
+    row("M = 4 lockstep step: p99 <= 2x the bus floor's p99 (same run)",
+        f"{ratio99:.2f}x ({m4['step_ms_p99']:.2f} / {m4['floor']['step_ms_p99']:.2f} ms)" if ratio99 else "-",
+        ratio99 <= 2 if ratio99 else None)
+    by_m = {r["M"]: r for r in results["runtime"]}
+    for M, what in ((64, "runs to completion"), (128, "attempted")):
+        r = by_m.get(M)
+        if r is None:
+            row(f"M = {M} {what}", "not run", None)
+        else:
+            done = bool(r.get("completed"))
+            row(f"M = {M} {what}", f"{'completed' if done else 'did not complete'} ({r.get('topology', '-')})",
+                done if M == 64 else True)
+    startup = _at(results["runtime"], 128, "startup_s")
+    row("M = 128, one process per agent: start-up <= 30 s", "not run" if startup is None else f"{startup:.1f} s",
+        None if startup is None else startup <= 30)
+    rss = [(r["M"], r["rss_mb_per_agent"]) for r in results["runtime"] if r.get("rss_mb_per_agent")]
+    over = [M for M, mb in rss if mb > 80]
+    row("resident memory per agent <= 80 MB",
+        ", ".join(f"{mb:.0f} MB at M = {M}" for M, mb in rss) or "-", (not over) if rss else None)
+    multi = {r["M"]: r["step_ms_p50"] for r in results["runtime"] if r.get("completed")}
+    for key, label, from_m in (("central_cvxpy", "the centralised CVXPY step, every M", 0),
+                               ("central_osqp", "the centralised OSQP step, M >= 32", 32)):
+        pairs = [(c["M"], multi[c["M"]], c["step_ms_p50"]) for c in results[key]
+                 if c["M"] in multi and c["M"] >= from_m]
+        row(f"DMPC multi-process step faster than {label}",
+            ", ".join(f"{mp / ref:.2g}x at M = {M}" for M, mp, ref in pairs) or "-",
+            all(mp < ref for _, mp, ref in pairs) if pairs else None)
+    hosted = next((r for r in results.get("scale", []) if r["M"] == 1024), None)
+    if hosted is None:
+        row("M = 1024 end to end, agents hosted many to a process: completes", "not run", None)
+    else:
+        done = bool(hosted.get("completed"))
+        said = (f"{hosted['steps']} steps, {hosted['processes']} processes of {hosted['agents_per_process']} agents"
+                if done else "did not complete")
+        row("M = 1024 end to end, agents hosted many to a process: completes", said, done)
+    design = _at(results["design"], 1024, "design_s")
+    row("M = 1024 design <= 3 min", "not run" if design is None else f"{design:.1f} s",
+        None if design is None else design <= 180)
+    return rows
+
+
+def _fmt(value, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def markdown(results: dict, command: str) -> str:
+    """The report: when and where, the headline and the targets first, then every table.
+
+    ``command`` is what regenerates it. The figures and the history are added by
+    :func:`write_report`.
+    """
+    m = results["machine"]
+    when = f" {results['date']}" if results.get("date") else ""
+    lines = ["# Benchmarks", "",
+             f"Measured{when} on {m['machine']}, {m['cores']} cores, {m['memory_gib']} GiB, Python {m['python']}; "
+             f"{results['seconds']:.0f} s in all{' (the quick subset)' if results.get('quick') else ''}. "
+             f"Regenerate with `{command}`.", "",
+             f"Speed of this machine at the time: {m.get('calibration_ms', float('nan')):.1f} ms for 10^6 Python "
+             "additions (best of 7). Shared virtual machines vary from hour to hour; compare runs only with this "
+             "figure alongside." + _load_text(m), ""]
+    lines += headline_lines(results)
+    lines += ["## Targets", "", "Step ratios are DMPC multi-process time over the reference's (below 1 is faster).", "",
+              "| target | measured | met |", "|---|---|---|"]
+    lines += [f"| {t} | {m} | {ok} |" for t, m, ok in targets(results)]
+    lines += ["", "## Local QP (paper's subsystem, one agent's closed-loop sequence replayed, vector updates included)",
+              "", "| N | solves | median (us) | p99 (us) |", "|---|---|---|---|"]
+    lines += [f"| {q['N']} | {q['solves']} | {q['us_p50']:.1f} | {q['us_p99']:.1f} |" for q in results["qp"]]
+    lines += ["", "## Multi-process lockstep (`dmpc run`, all processes on this machine)", "",
+              "Step time: from the plant starting to send the release of step k to the step's completion, on the "
+              "plant's clock, k = 0 (Jacobi to convergence) excluded. Bus share: step time minus the slowest agent's QP "
+              "time. Memory: peak while stepping.", "",
+              "Floor: a bare Zenoh lockstep loop measured just before each run (`dmpc.bench.floor`): the same "
+              "processes, topology and neighbours, payloads of the run's release and plan sizes, one release "
+              "broadcast per step, and the QP's median (N = 10) burnt as CPU by each agent; nothing decoded, "
+              "checked or recorded. x floor: the run's step figure over the floor's.", "",
+              "Topology: `mesh` (agents peer to peer) up to 64 agents, `star` (agents as clients of the "
+              "plant's router) above; wall: the whole `dmpc run`, start-up included.", "",
+              "| M | topology | steps | wall (s) | step median (ms) | step p99 (ms) | floor median (ms) | floor p99 (ms) | "
+              "x floor median | x floor p99 | bus share | RSS/agent (MB) | PSS/agent (MB) | RSS total (MB) | "
+              "PSS total (MB) |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results["runtime"]:
+        floor = r.get("floor") if r.get("floor", {}).get("completed") else {}
+        if r.get("completed"):
+            lines.append(f"| {r['M']} | {r.get('topology', '-')} | {r['steps']} | {r['wall_s']:.0f} | "
+                         f"{r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | {_fmt(floor.get('step_ms_p50'))} | "
+                         f"{_fmt(floor.get('step_ms_p99'))} | {_fmt(r.get('over_floor_p50'))} | "
+                         f"{_fmt(r.get('over_floor_p99'))} | "
+                         f"{r['bus_share_p50']:.0%} | {_fmt(r['rss_mb_per_agent'])} | {_fmt(r['pss_mb_per_agent'])} | "
+                         f"{r['rss_mb_total']:.0f} | {r['pss_mb_total']:.0f} |")
+        else:
+            reason = " ".join(str(r.get("reason", "?")).split())[:160].replace("|", "/")
+            lines.append(f"| {r['M']} | {r.get('topology', '-')} | did not complete: {reason} | | | | | | | | | | | | |")
+    for r in results["runtime"]:
+        if len(r.get("sets", [])) > 1:
+            shown = "; ".join(f"{p['floor_ms_p50']:.2f} / {p['floor_ms_p99']:.2f} then {p['step_ms_p50']:.2f} / "
+                              f"{p['step_ms_p99']:.2f}" for p in r["sets"])
+            lines += ["", f"M = {r['M']}: floor and run alternated {len(r['sets'])} times (step median / p99 in ms, "
+                          f"floor then run): {shown}. The row gives the medians over the sets and the medians of "
+                          "each set's ratios."]
+    lines += ["", "## Side by side: the same closed loop, per-step time and closed-loop cost", "",
+              "| M | DMPC multi-process (ms) | DMPC in-process (ms) | centralised OSQP (ms) | centralised CVXPY (ms) | "
+              "cost DMPC | cost centralised OSQP | cost CVXPY | multi-process / CVXPY | multi-process / OSQP |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    multi = {r["M"]: r for r in results["runtime"] if r.get("completed")}
+    for ip, co, cc in zip(results["inprocess"], results["central_osqp"], results["central_cvxpy"]):
+        M = ip["M"]
+        mp = multi.get(M)
+        mp_ms = mp["step_ms_p50"] if mp else None
+        lines.append(f"| {M} | {_fmt(mp_ms)} | {ip['step_ms_p50']:.3g} | {co['step_ms_p50']:.3g} | "
+                     f"{cc['step_ms_p50']:.3g} | {ip['closed_loop_cost']:.4g} | {co['closed_loop_cost']:.4g} | "
+                     f"{cc['closed_loop_cost']:.4g} | {_fmt(mp_ms / cc['step_ms_p50'] if mp_ms else None)} | "
+                     f"{_fmt(mp_ms / co['step_ms_p50'] if mp_ms else None)} |")
+    lines += ["", "## Offline design against M (chain family, LMI gains, horizon 10)", "",
+              "LMI: gains and their check; X^f: the terminal set (redundancy decided on each row's neighbourhood); "
+              "start LP: the start's feasibility at the horizon; design: all of it. X^f plain: one LP over the whole "
+              "set per test (the earlier method), with its set compared to the other's.", "",
+              "| M | LMI (s) | X^f (s) | start LP (s) | design (s) | rows of Omega | t* | sigma0 | X^f plain (s) | "
+              "same Omega, sigma0 |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for d in results["design"]:
+        same = "-" if "same_omega" not in d else ("yes" if d["same_omega"] and d["same_sigma0"] else "NO")
+        lines.append(f"| {d['M']} | {d['lmi_s']:.2f} | {d['terminal_set_s']:.2f} | {_fmt(d.get('start_check_s'))} | "
+                     f"{_fmt(d.get('design_s'))} | {d['omega_rows']} | {d['t_star']} | {_fmt(d.get('sigma0'), 6)} | "
+                     f"{_fmt(d.get('terminal_set_plain_s'))} | {same} |")
+    lines += scale_lines(results.get("scale", []))
+    return "\n".join(lines) + "\n"
+
+
+def _load_text(m: dict) -> str:
+    """The machine's load average at the start and the end, if measured: other work slows every figure."""
+    if m.get("load_average") is None:
+        return ""
+    end = f" and {m['load_average_end']:.1f} at the end" if m.get("load_average_end") is not None else ""
+    return (f" Load average (1 min): {m['load_average']:.1f} at the start{end}, on {m['cores']} cores: other work "
+            "running beside the benchmarks slows them.")
+
+
+def headline_lines(results: dict) -> list[str]:
+    """The headline: the figures that matter in a sentence each, and as JSON (``dmpc bench --json``)."""
+    h = results["headline"]
+    said = []
+    if h.get("step_ms_p50_m4") is not None:
+        floor = (f" ({h['step_over_floor_p50_m4']:.2f}x and {h['step_over_floor_p99_m4']:.2f}x a bare Zenoh loop's)"
+                 if h.get("step_over_floor_p50_m4") and h.get("step_over_floor_p99_m4") else "")
+        said.append(f"- The paper's example (M = 4) over Zenoh, one process per agent: step median "
+                    f"{h['step_ms_p50_m4']:.2f} ms, p99 {h['step_ms_p99_m4']:.2f} ms{floor}.")
+    if h.get("qp_solve_us_p50") is not None:
+        said.append(f"- One agent's QP (N = 10): median {h['qp_solve_us_p50']:.0f} us.")
+    if h.get("startup_s_m128") is not None:
+        said.append(f"- M = 128, one process per agent: start-up {h['startup_s_m128']:.1f} s.")
+    if h.get("design_s_m1024") is not None or h.get("step_ms_p50_m1024_hosted") is not None:
+        parts = []
+        if h.get("design_s_m1024") is not None:
+            parts.append(f"design {h['design_s_m1024']:.0f} s")
+        if h.get("step_ms_p50_m1024_hosted") is not None:
+            parts.append(f"step median {h['step_ms_p50_m1024_hosted']:.0f} ms with agents hosted many to a process")
+        said.append(f"- M = 1024: {', '.join(parts)}.")
+    if h.get("rss_mb_per_agent") is not None:
+        said.append(f"- Largest resident memory of an agent process: {h['rss_mb_per_agent']:.0f} MB; largest M run: "
+                    f"{h['max_agents_run']}.")
+    rows = targets(results)
+    judged = [ok for _, _, ok in rows if ok != "-"]
+    said.append(f"- Targets met: {judged.count('yes')} of {len(judged)} measured (table below).")
+    return ["## Headline", "", *said, "", "```json", json.dumps(h, indent=2), "```", ""]
+
+
+def scale_lines(rows: list[dict]) -> list[str]:
+    """The table of the chain run with agents hosted many to a process (:mod:`dmpc.bench.scale`)."""
+    if not rows:
+        return []
+    return ["", "## Agents hosted many to a process", "",
+            "The chain of M copies of the paper's subsystem, designed (the same `prepare` as `dmpc run`), run with "
+            "`dmpc run --agents-per-process K` in lockstep, then the centralised MPC (one OSQP problem over the "
+            "whole system, same design) in closed loop for the same steps (`dmpc.bench.scale`). Start-up: processes "
+            "started to the first release. Step: steps 1 to K-1. RSS: peak while stepping, shared pages counted in "
+            "every process. Cost ratio: the DMPC run's closed-loop cost over the centralised loop's.", "",
+            "| " + " | ".join(SCALE_HEADER) + " |", "|" + "---|" * len(SCALE_HEADER),
+            *[scale_markdown_row(r) for r in rows]]
+
+
+def kept_history(previous: str) -> str:
+    """The hand-written history of a report (from :data:`HISTORY_HEADING` to its end), or ''."""
+    at = previous.find(HISTORY_HEADING)
+    return "" if at < 0 else previous[at:].rstrip() + "\n"
+
+
+def write_report(results: dict, path: Path, command: str) -> None:
+    """Write the report to ``path`` (Markdown), its figures to ``figures/`` beside it and the raw
+    results to ``path`` with ``.json``; the history of the report there before is kept at the end."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    previous = path.read_text(errors="replace") if path.is_file() else ""
+    figures = plot(results, path.parent / "figures")
+    text = markdown(results, command)
+    if figures:
+        text += "\n" + "\n".join(f"![{p.stem}](figures/{p.name})" for p in figures) + "\n"
+    history = kept_history(previous)
+    if history:
+        text += "\n" + history
+    path.write_text(text)
+    path.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
+
+
+def plot(results: dict, folder: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    done = [r for r in results["runtime"] if r.get("completed")]
+    if done:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        Ms = [r["M"] for r in done]
+        ax.loglog(Ms, [r["step_ms_p50"] for r in done], "o-", label="DMPC multi-process, median")
+        ax.loglog(Ms, [r["step_ms_p99"] for r in done], "o--", label="DMPC multi-process, p99")
+        for key, label in (("inprocess", "DMPC in-process"), ("central_osqp", "centralised OSQP"),
+                           ("central_cvxpy", "centralised CVXPY")):
+            rows = results[key]
+            ax.loglog([r["M"] for r in rows], [r["step_ms_p50"] for r in rows], "s-", label=label)
+        ax.set_xlabel("subsystems M")
+        ax.set_ylabel("time per step (ms)")
+        ax.set_title("Per-step time against M (2 cores)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(folder / "step_time.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    if results["design"]:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        d = results["design"]
+        ax.loglog([r["M"] for r in d], [r["lmi_s"] for r in d], "o-", label="LMI (Clarabel)")
+        ax.loglog([r["M"] for r in d], [r["terminal_set_s"] for r in d], "s-", label="X^f (Gilbert-Tan, HiGHS)")
+        if all("design_s" in r for r in d):
+            ax.loglog([r["M"] for r in d], [r["design_s"] for r in d], "^-", label="whole design")
+        ax.set_xlabel("subsystems M")
+        ax.set_ylabel("seconds")
+        ax.set_title("Offline design time against M")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        paths.append(folder / "design_time.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    return paths

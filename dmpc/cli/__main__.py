@@ -1,0 +1,4 @@
+"""``python -m dmpc.cli``: the ``dmpc`` command."""
+from dmpc.cli import main
+
+main()

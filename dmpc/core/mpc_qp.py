@@ -1,0 +1,232 @@
+"""The sparse MPC QP in OSQP form, shared by the local and the centralised problems.
+
+Decision vector ``[z(0), ..., z(N), v(0), ..., v(N-1)]`` (OSQP's MPC example layout):
+
+    min  sum_{t<N} z(t)'Q z(t) + v(t)'R v(t) + z(N)'P z(N)
+    s.t. z(0) = x,  z(t+1) = A z(t) + B v(t) + c(t)       (equality rows, right side updated per solve)
+         lower_u(t) <= H_u v(t) <= upper_u(t)              t = 0..N-1
+         lower_x(t) <= H_x z(t) <= upper_x(t)              t = 1..N
+         T z(N) in [terminal lower, terminal upper]        (updated per solve)
+
+Only bound vectors change between solves, so the matrices are factorised once.
+
+Accuracy: the k = 0 Jacobi iteration stops at a plan change of 1e-9, below what OSQP's ADMM
+reaches at eps 1e-7, so every solve relies on polishing (a solve of the KKT system of the
+guessed active set). The polished solution is refined iteratively against OSQP's regularisation
+delta; with one refinement step polishing failed on a quarter of the solves of badly scaled
+QPs and the iteration stalled at its cap. Three steps (OSQP's own default) suffice on the
+shipped and test systems. An instance whose solve still fails to polish switches to
+POLISH_RETRY_REFINE_ITER steps for good and repeats the solve, warm-started from the unpolished
+iterate (a few ADMM iterations and a polish), so badly conditioned QPs pay for the extra
+steps and the others do not.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+from osqp import SolverStatus
+
+from dmpc.core.qp_status import QPStatus
+
+# OSQP's integer status codes (its SolverStatus enum) in the project's terms
+_OSQP_STATUS = {
+    SolverStatus.OSQP_SOLVED: QPStatus.SOLVED,
+    SolverStatus.OSQP_SOLVED_INACCURATE: QPStatus.INACCURATE,
+    SolverStatus.OSQP_PRIMAL_INFEASIBLE: QPStatus.INFEASIBLE,
+    SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE: QPStatus.INFEASIBLE,
+    SolverStatus.OSQP_DUAL_INFEASIBLE: QPStatus.UNBOUNDED,
+    SolverStatus.OSQP_DUAL_INFEASIBLE_INACCURATE: QPStatus.UNBOUNDED,
+    SolverStatus.OSQP_MAX_ITER_REACHED: QPStatus.MAX_ITER,
+}
+
+OSQP_INFTY = 1e30
+
+# info.status_polish codes of OSQP 1.x (osqp_polish_status_type in osqp_api_constants.h; the
+# Python package exports no enum for them)
+POLISH_SUCCESS = 1
+POLISH_FAILED = -1
+
+POLISH_RETRY_REFINE_ITER = 25
+
+DEFAULT_SETTINGS = dict(
+    eps_abs=1e-7,
+    eps_rel=1e-7,
+    max_iter=10000,
+    polishing=True,
+    warm_starting=True,
+    check_termination=5,
+    polish_refine_iter=3,
+    adaptive_rho_interval=25,  # fixed: the default (0) adapts on measured time, which is not reproducible
+    verbose=False,
+)
+
+
+@dataclass(frozen=True)
+class QPSolution:
+    """One solve.
+
+    Attributes
+    ----------
+    status : QPStatus
+    z : ndarray, shape (N + 1, n)
+        Nominal states; ``z[0]`` is the measured state. NaN when not solved.
+    v : ndarray, shape (N, m)
+        Nominal inputs. NaN when not solved.
+    cost : float
+        The objective value of the plan (NaN when not solved).
+    solve_time : float
+        Seconds spent in update + solve.
+    iterations : int
+        ADMM iterations (of the repeated solve, if the first one did not polish).
+    polished : bool
+        True when OSQP's polishing succeeded (``info.status_polish`` = 1): the solution is the
+        exact optimum of the guessed active set, accurate far below eps_abs. False when
+        polishing failed, was not run (infeasible, iteration limit, polishing off) or the
+        problem was decided without OSQP.
+    """
+
+    status: QPStatus
+    z: np.ndarray
+    v: np.ndarray
+    cost: float
+    solve_time: float
+    iterations: int
+    polished: bool = False
+
+
+@dataclass(frozen=True)
+class StageRows:
+    """Constraint rows applied at every step: ``lower[t] <= H w(t) <= upper[t]``.
+
+    H has shape (r, d); lower and upper have shape (steps, r).
+    """
+
+    H: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+class MpcQP:
+    """The QP above for given matrices; ``solve`` updates x, c and the terminal bounds.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    B : ndarray, shape (n, m)
+    Q, R, P : ndarray
+        Stage and terminal weights.
+    horizon : int
+    inputs : StageRows
+        Rows on v(t), ``steps = N``.
+    states : StageRows or None
+        Rows on z(t), t = 1..N (``steps = N``).
+    terminal : ndarray, shape (r_f, n)
+        T in the terminal rows.
+    settings : dict, optional
+        OSQP settings overriding DEFAULT_SETTINGS.
+    """
+
+    def __init__(self, A, B, Q, R, P, horizon: int, inputs: StageRows, states: StageRows | None,
+                 terminal: np.ndarray, settings: dict | None = None) -> None:
+        n, m, N = B.shape[0], B.shape[1], horizon
+        self.n, self.m, self.N = n, m, N
+        self._Q, self._R, self._P = Q, R, P
+        nz, nv = (N + 1) * n, N * m
+        self._nz = nz
+        cost = sp.block_diag([sp.kron(sp.eye(N), Q), P, sp.kron(sp.eye(N), R)], format="csc")
+        Ax = sp.kron(sp.eye(N + 1), -sp.eye(n)) + sp.kron(sp.eye(N + 1, k=-1), A)
+        Bv = sp.kron(sp.vstack([sp.csc_matrix((1, N)), sp.eye(N)]), B)
+        blocks, lower, upper = [sp.hstack([Ax, Bv])], [np.zeros(nz)], [np.zeros(nz)]
+        Hu = inputs.H
+        blocks.append(sp.hstack([sp.csc_matrix((N * Hu.shape[0], nz)), sp.kron(sp.eye(N), Hu)]))
+        lower.append(np.asarray(inputs.lower, float).ravel())
+        upper.append(np.asarray(inputs.upper, float).ravel())
+        if states is not None and states.H.shape[0]:
+            Hx = states.H
+            sel = sp.hstack([sp.csc_matrix((N, 1)), sp.eye(N)])
+            blocks.append(sp.hstack([sp.kron(sel, Hx), sp.csc_matrix((N * Hx.shape[0], nv))]))
+            lower.append(np.asarray(states.lower, float).ravel())
+            upper.append(np.asarray(states.upper, float).ravel())
+        T = sp.csc_matrix(terminal)
+        start = sum(b.size for b in lower)
+        self._terminal = slice(start, start + T.shape[0])
+        blocks.append(sp.hstack([sp.csc_matrix((T.shape[0], N * n)), T, sp.csc_matrix((T.shape[0], nv))]))
+        lower.append(np.full(T.shape[0], -np.inf))
+        upper.append(np.full(T.shape[0], np.inf))
+        # OSQP treats |bounds| >= OSQP_INFTY as infinite; clip once here instead of on every update
+        self._l = np.clip(np.concatenate(lower), -OSQP_INFTY, OSQP_INFTY)
+        self._u = np.clip(np.concatenate(upper), -OSQP_INFTY, OSQP_INFTY)
+        opts = dict(DEFAULT_SETTINGS)
+        opts.update(settings or {})
+        self._solver = osqp.OSQP()
+        self._solver.setup(P=2.0 * sp.triu(cost, format="csc"), q=np.zeros(nz + nv),
+                           A=sp.vstack(blocks, format="csc"), l=self._l, u=self._u, **opts)
+        self._refine = int(opts["polish_refine_iter"])
+        self._nvars = nz + nv
+        self._cold = False
+
+    def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
+              terminal_upper: np.ndarray) -> QPSolution:
+        """Solve from x (n,) with feed-forward c (N, n) or None and terminal bounds (r_f,).
+
+        Infinite terminal bounds are allowed (clipped to OSQP_INFTY).
+        """
+        n, nz = self.n, self._nz
+        l, u = self._l, self._u
+        np.negative(x, out=l[:n])
+        if coupling is None:
+            l[n:nz] = 0.0
+        else:
+            np.negative(coupling.reshape(-1), out=l[n:nz])
+        u[:nz] = l[:nz]
+        # clipped to +-OSQP_INFTY (np.clip's values, without its dispatch: this runs every step)
+        lower_f, upper_f = l[self._terminal], u[self._terminal]
+        np.minimum(np.maximum(terminal_lower, -OSQP_INFTY, out=lower_f), OSQP_INFTY, out=lower_f)
+        np.minimum(np.maximum(terminal_upper, -OSQP_INFTY, out=upper_f), OSQP_INFTY, out=upper_f)
+        N = self.N
+        if (lower_f > upper_f).any():
+            # an empty terminal set (e.g. beta below the tube margin): OSQP would reject the
+            # update and silently keep the previous problem, so answer here
+            return QPSolution(QPStatus.INFEASIBLE, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan),
+                              float("nan"), 0.0, 0)
+        if self._cold:
+            self._solver.warm_start(x=np.zeros(self._nvars), y=np.zeros(l.size))
+            self._cold = False
+        t0 = time.perf_counter()
+        info, solution = self._run(l, u)
+        if info.status_polish == POLISH_FAILED and self._refine < POLISH_RETRY_REFINE_ITER:
+            self._refine = POLISH_RETRY_REFINE_ITER
+            self._solver.update_settings(polish_refine_iter=self._refine)
+            info, solution = self._run(l, u)
+        elapsed = time.perf_counter() - t0
+        status = _OSQP_STATUS.get(info.status_val, QPStatus.ERROR)
+        if not status.feasible:
+            # a failed solve leaves iterates that mislead the next warm start: start cold
+            self._cold = True
+            return QPSolution(status, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan), float("nan"),
+                              elapsed, info.iter)
+        z = solution[:nz].reshape(N + 1, n)
+        z[0] = x
+        # q = 0 and P = 2 * cost, so OSQP's objective is the plan's cost
+        return QPSolution(status, z, solution[nz:].reshape(N, self.m), float(info.obj_val), elapsed, info.iter,
+                          info.status_polish == POLISH_SUCCESS)
+
+    def _run(self, l: np.ndarray, u: np.ndarray):
+        """Set the bounds l, u (each (rows,)) and solve; OSQP's info and primal solution (vars,)."""
+        self._solver.update(l=l, u=u)
+        res = self._solver.solve(raise_error=False)
+        return res.info, res.x
+
+    def cost(self, z: np.ndarray, v: np.ndarray) -> float:
+        """Objective of a plan: z (N+1, n), v (N, m)."""
+        return plan_cost(z, v, self._Q, self._R, self._P)
+
+
+def plan_cost(z: np.ndarray, v: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> float:
+    """sum_{t<N} z'Qz + v'Rv + z(N)'P z(N) for z (N+1, n), v (N, m)."""
+    zs, zN = z[:-1], z[-1]
+    return float(((zs @ Q) * zs).sum() + ((v @ R) * v).sum() + zN @ P @ zN)

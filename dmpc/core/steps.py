@@ -1,0 +1,99 @@
+"""What a run's steps are made of: the protocol's settings and the record of one step.
+
+Shared by the coordinator that builds the records, the centralised and direct loops, the run
+folder that writes them and the live view that shows them, so it sits below all of them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+import numpy as np
+
+Mode = Literal["lockstep", "realtime"]
+"""How steps follow each other: as soon as every plan is in (``lockstep``), or every dt (``realtime``)."""
+MODES: tuple[Mode, ...] = get_args(Mode)
+Coupling = Literal["feedforward", "nominal"]
+"""What an agent's prediction takes of its neighbours: their assumed trajectories (``feedforward``),
+or nothing (``nominal``, the paper's decoupled model)."""
+COUPLINGS: tuple[Coupling, ...] = get_args(Coupling)
+Method = Literal["tv-box", "tv-box-opt", "fixed-box", "ellipsoid", "ellipsoid-adaptive", "centralized"]
+"""The name of a control method (``options.method``, ``--method``; dmpc.methods says what each does)."""
+METHOD_NAMES: tuple[Method, ...] = get_args(Method)
+DEFAULT_METHOD: Method = "tv-box"
+
+NO_SEED = "no centralised seed: "
+"""Starts the part of a k = 0 note that says why the centralised QP gave no plan to start from,
+when the agents' first round was infeasible (the verdict's ``infeasible-start`` quotes it)."""
+
+
+@dataclass(frozen=True)
+class ProtocolOptions:
+    """What the coordinator needs from the scenario's options.
+
+    Attributes
+    ----------
+    steps : int
+    rounds, initial_rounds : int
+        The most Jacobi rounds per step, at k > 0 and at k = 0 (the scenario's
+        ``options.iterations`` and ``options.initial_iterations``).
+    tolerance, initial_tolerance : float
+        The rounds stop early when the largest plan change is below this.
+    """
+
+    steps: int
+    rounds: int = 1
+    tolerance: float = 1e-9
+    initial_rounds: int = 200
+    initial_tolerance: float = 1e-9
+
+    def to_json(self) -> dict:
+        """As run.json holds it: the scenario's option names."""
+        return {"steps": self.steps, "iterations": self.rounds, "tolerance": self.tolerance,
+                "initial_iterations": self.initial_rounds, "initial_tolerance": self.initial_tolerance}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "ProtocolOptions":
+        """From :meth:`to_json`'s content."""
+        return cls(steps=int(data["steps"]), rounds=int(data["iterations"]), tolerance=float(data["tolerance"]),
+                   initial_rounds=int(data["initial_iterations"]), initial_tolerance=float(data["initial_tolerance"]))
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """Everything recorded about one step, built once when the step completes.
+
+    Array shapes: x (n,), u (m,), alpha (n,), x_next (n,); per-agent lists have M entries.
+    ``r`` and ``r_next`` (M,) are the ellipsoid levels of the ellipsoid methods (None otherwise);
+    those methods record alpha = 0 and beta = NaN.
+
+    ``latency`` (M,) is, per agent, the time from the agent publishing the plan the step used to
+    the host receiving it (NaN for an agent without a plan, or where no clock is kept);
+    ``step_time`` is the step's wall time on the host's clock (NaN where none is kept).
+    """
+
+    k: int
+    x: np.ndarray
+    u: np.ndarray
+    alpha: np.ndarray
+    beta: float
+    x_next: np.ndarray
+    alpha_next: np.ndarray
+    beta_next: float
+    J: float
+    J_agents: list[float]
+    S: float
+    rounds: int
+    max_change: float
+    status: list[str]
+    fallback: list[bool]
+    fallback_reason: list[str]
+    solve_time: list[float]
+    qp_iterations: list[int]
+    plans_z: list[np.ndarray]
+    plans_v: list[np.ndarray]
+    latency: list[float]
+    step_time: float
+    note: str = ""
+    r: np.ndarray | None = None
+    r_next: np.ndarray | None = None

@@ -1,0 +1,137 @@
+"""Plans, their shifted continuations and the coupling feed-forward
+(docs/algorithm.md, "Online step k, agent i", items 1, 2 and 7).
+
+A plan made at step k' is ``z`` (N+1, n) and ``v`` (N, m). Beyond its horizon it is continued
+with the local terminal controller: z(N+q) = Gamma^q z(N), v(N-1+q) = K z(N-1+q), Gamma = A_ii + B_ii K_i.
+(The global tail would need the neighbours' terminal states; the local one is what an agent can
+compute alone, and it is only ever used after missed plans.)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A plan made at step ``k`` in Jacobi round ``round``.
+
+    Attributes
+    ----------
+    k, round : int
+    z : ndarray, shape (N + 1, n)
+    v : ndarray, shape (N, m)
+    """
+
+    k: int
+    round: int
+    z: np.ndarray
+    v: np.ndarray
+
+
+def continued(plan: Plan, length: int, Gamma: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plan extended with the terminal controller.
+
+    Returns
+    -------
+    z : ndarray, shape (length + 1, n)
+    v : ndarray, shape (length, m)
+    """
+    N = plan.v.shape[0]
+    if length <= N:
+        return plan.z[: length + 1].copy(), plan.v[:length].copy()
+    z = np.empty((length + 1, plan.z.shape[1]))
+    z[: N + 1] = plan.z
+    for t in range(N + 1, length + 1):
+        z[t] = Gamma @ z[t - 1]
+    v = np.empty((length, plan.v.shape[1]))
+    v[:N] = plan.v
+    v[N:] = z[N:length] @ K.T
+    return z, v
+
+
+def assumed_trajectory(plan: Plan | None, k: int, x_now: np.ndarray, N: int, Gamma: np.ndarray,
+                       K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A neighbour's assumed trajectory at step k (Assumption 1 with a measured first state).
+
+    ``zhat[0] = x_now``; ``zhat[t] = z(k+t | k')`` and ``vhat[t] = v(k+t | k')`` from the plan
+    made at k' <= k; without a plan, the decoupled K-rollout from x_now.
+
+    Returns
+    -------
+    zhat : ndarray, shape (N, n)
+    vhat : ndarray, shape (N, m)
+    """
+    if plan is None:
+        return k_rollout(x_now, N, Gamma, K)
+    shift = k - plan.k
+    if shift == 1 and plan.v.shape[0] == N:  # the usual case, without building the continuation
+        zhat = np.empty((N, plan.z.shape[1]))
+        zhat[0] = x_now
+        zhat[1:] = plan.z[2:]
+        vhat = np.empty((N, plan.v.shape[1]))
+        vhat[:-1] = plan.v[1:]
+        vhat[-1:] = plan.z[N:N + 1] @ K.T
+        return zhat, vhat
+    z, v = continued(plan, N + shift, Gamma, K)
+    zhat = z[shift : shift + N].copy()
+    zhat[0] = x_now
+    return zhat, v[shift : shift + N]
+
+
+def k_rollout(x: np.ndarray, N: int, Gamma: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """zhat(t) = Gamma^t x, vhat(t) = K zhat(t), t = 0..N-1; shapes (N, n) and (N, m)."""
+    z = [np.asarray(x, float)]
+    for _ in range(N - 1):
+        z.append(Gamma @ z[-1])
+    z = np.array(z)
+    return z, (K @ z.T).T
+
+
+def candidate_plan(plan: Plan | None, k: int, x_now: np.ndarray | None, N: int, Gamma: np.ndarray,
+                   K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate plan at step k: the plan made at k' <= k shifted to k and continued with the
+    terminal controller, or without a plan the K-rollout from x_now (needed only then).
+
+    Returns
+    -------
+    z : ndarray, shape (N + 1, n)
+    v : ndarray, shape (N, m)
+    """
+    if plan is None:
+        z, v = k_rollout(x_now, N + 1, Gamma, K)
+        return z, v[:N]
+    shift = k - plan.k
+    if shift == 1 and plan.v.shape[0] == N:  # the usual case, without building the continuation
+        z = np.empty_like(plan.z, dtype=float)
+        z[:N] = plan.z[1:]
+        z[N] = Gamma @ plan.z[N]
+        v = np.empty_like(plan.v, dtype=float)
+        v[:-1] = plan.v[1:]
+        v[-1:] = plan.z[N:N + 1] @ K.T
+        return z, v
+    z, v = continued(plan, shift + N, Gamma, K)
+    return z[shift:], v[shift:]
+
+
+def shifted_input(plan: Plan | None, k: int, x_now: np.ndarray, Gamma: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """The fallback input v*(k|k') + K (x(k) - z*(k|k')), or K x(k) without a plan; shape (m,)."""
+    if plan is None:
+        return K @ x_now
+    shift = k - plan.k
+    z, v = continued(plan, shift + 1, Gamma, K)
+    return v[shift] + K @ (x_now - z[shift])
+
+
+def coupling_feedforward(A_blocks: list[np.ndarray], B_blocks: list[np.ndarray],
+                         assumed: list[tuple[np.ndarray, np.ndarray]], N: int, n: int) -> np.ndarray:
+    """c(t) = sum_j A_ij zhat_j(t) + B_ij vhat_j(t), shape (N, n).
+
+    ``A_blocks[q]``, ``B_blocks[q]`` and ``assumed[q]`` belong to the same neighbour j != i; a
+    ``B_blocks[q]`` of None stands for zeros.
+    """
+    c = np.zeros((N, n))
+    for Aij, Bij, (zhat, vhat) in zip(A_blocks, B_blocks, assumed):
+        c += zhat @ Aij.T if Bij is None else zhat @ Aij.T + vhat @ Bij.T
+    return c

@@ -1,0 +1,46 @@
+"""Figures of a :class:`~dmpc.api.result.Result`: states, inputs and cost over time.
+
+Drawn by the same code as ``dmpc report`` (:mod:`dmpc.plots.report`): axes in seconds when the
+scenario has ``dt`` (else steps), labelled with the quantities' names and units, the bounds
+dashed. The figures are made with pyplot, so a notebook shows them; a script saves them with
+``fig.savefig``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dmpc.plots.report import STYLE, RunData, _series_figure, _signal_figure, _style
+
+
+def run_data(result) -> RunData:
+    """The figures' view of a Result (the arrays of its run folder, as ``dmpc report`` reads them)."""
+    names = list(result.names)
+    states = [result.states[name] for name in names]
+    inputs = [result.inputs[name] for name in names]
+    x = np.hstack([result.x[name] for name in names])
+    S = np.asarray(result.summary.get("S", []), float)
+    P = [result.design.P[name] for name in names] if result.design is not None else None
+    return RunData(path=Path(result.folder) if result.folder is not None else Path("."), method=result.method,
+                   scenario=str(result.summary.get("scenario", "")), names=names, n=[len(q) for q in states],
+                   m=[len(q) for q in inputs], lower=[np.array([q.lower for q in qs]) for qs in inputs],
+                   upper=[np.array([q.upper for q in qs]) for qs in inputs], P=P, x=x,
+                   u=np.hstack([result.u[name] for name in names]),
+                   alpha=np.hstack([result.alpha[name] for name in names]), beta=np.asarray(result.beta, float),
+                   r=None, J=np.asarray(result.J, float), S=S if S.shape == (x.shape[0],) else np.full(x.shape[0], np.nan),
+                   states=states, inputs=inputs, dt=result.dt)
+
+
+def plot_result(result, bounds: bool = True) -> dict:
+    """``{"states": Figure, "inputs": Figure, "cost": Figure}`` for a Result."""
+    import matplotlib.pyplot as plt
+
+    run = run_data(result)
+    head = f"{run.scenario}, {run.method}"
+    with plt.rc_context(STYLE):
+        return {"states": _signal_figure(plt, [(run, run.method)], "x", f"{head}: states", bounds),
+                "inputs": _signal_figure(plt, [(run, run.method)], "u", f"{head}: inputs", bounds),
+                "cost": _series_figure(plt, [("J(k)", run.J, dict(_style(run.method), color="C0"), run.method)],
+                                       "$J(k) = \\sum_i J_i^*(k)$",
+                                       f"cost, closed loop {result.cost:.4g} (verdict {result.verdict})", run)}

@@ -1,0 +1,115 @@
+"""A prepared run as plain JSON: what an agent process needs, loadable without pydantic.
+
+``dmpc run`` writes ``run.json`` into the run folder and starts its agents from it, so an
+agent process imports neither the scenario schema (pydantic) nor the design solvers: it
+starts faster and stays smaller. The design digest inside is checked by the plant as usual.
+The bundle is derived data: the scenario file stays the source of truth.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from dmpc.bus.faults import FaultPlan
+from dmpc.core.steps import ProtocolOptions
+from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
+from dmpc.methods import DEFAULT_METHOD, method_spec
+from dmpc.offline import design_from_json
+from dmpc.offline.tubes import Tightening
+from dmpc.prepared import Prepared, design_digest
+
+BUNDLE_VERSION = 2
+
+
+def _set_json(s: LinearSet | None) -> dict | None:
+    if s is None:
+        return None
+    return {"H": s.H.tolist(), "lower": _floats(s.lower), "upper": _floats(s.upper)}
+
+
+def _floats(a: np.ndarray) -> list:
+    """Floats with infinities as strings, which JSON cannot hold as numbers."""
+    return [float(v) if np.isfinite(v) else ("inf" if v > 0 else "-inf") for v in np.asarray(a, float)]
+
+
+def _set_from(d: dict | None) -> LinearSet | None:
+    if d is None:
+        return None
+    return LinearSet(np.array(d["H"], float), np.array(d["lower"], float), np.array(d["upper"], float))
+
+
+def _sparse_json(a: np.ndarray) -> dict:
+    """A matrix as its shape and nonzero entries (Omega's rows reach a few subsystems each)."""
+    rows, cols = np.nonzero(a)
+    return {"shape": list(a.shape), "rows": rows.tolist(), "cols": cols.tolist(), "values": a[rows, cols].tolist()}
+
+
+def _dense(d: dict) -> np.ndarray:
+    a = np.zeros(tuple(int(v) for v in d["shape"]))
+    a[np.asarray(d["rows"], dtype=np.intp), np.asarray(d["cols"], dtype=np.intp)] = np.asarray(d["values"], float)
+    return a
+
+
+def bundle_json(prepared: Prepared) -> dict:
+    """Everything an agent needs, as JSON-ready data."""
+    system = prepared.system
+    return {
+        "bundle_version": BUNDLE_VERSION,
+        "name": prepared.name,
+        "coupling": prepared.coupling,
+        "method": prepared.method,
+        "subsystems": [{"name": s.name, "A": s.A.tolist(), "B": s.B.tolist(), "Q": s.Q.tolist(), "R": s.R.tolist(),
+                        "x0": s.x0.tolist(), "input": _set_json(s.input_set), "state": _set_json(s.state_set)}
+                       for s in system.subsystems],
+        "couplings": [{"target": c.target, "source": c.source, "A": c.A.tolist(), "B": c.B.tolist()}
+                      for c in system.couplings],
+        "edges": [list(e) for e in system.edges],
+        "design": {**prepared.design_json(omega=False), "omega": _sparse_json(prepared.design.terminal.omega)},
+        "tightening": [{"input": t.input_margin.tolist(), "state": t.state_margin.tolist(),
+                        "terminal": t.terminal_margin.tolist()} for t in prepared.design.tightening],
+        "protocol": prepared.protocol.to_json(),
+        "mode": prepared.mode, "dt": prepared.dt, "deadline": prepared.deadline,
+        "faults": prepared.faults.to_json(),
+    }
+
+
+def write_bundle(prepared: Prepared, path: Path) -> None:
+    Path(path).write_text(json.dumps(bundle_json(prepared)))
+
+
+def load_bundle(path: Path) -> Prepared:
+    """Rebuild a Prepared from ``run.json`` (ValueError with a clear message if malformed)."""
+    try:
+        d = json.loads(Path(path).read_text())
+        if d.get("bundle_version") != BUNDLE_VERSION:
+            raise ValueError(f"bundle version {d.get('bundle_version')!r} is not {BUNDLE_VERSION}")
+        subsystems = tuple(Subsystem(s["name"], np.array(s["A"], float), np.array(s["B"], float),
+                                     np.array(s["Q"], float), np.array(s["R"], float), np.array(s["x0"], float),
+                                     _set_from(s["input"]), _set_from(s["state"])) for s in d["subsystems"])
+        couplings = tuple(Coupling(c["target"], c["source"], np.array(c["A"], float), np.array(c["B"], float))
+                          for c in d["couplings"])
+        system = CoupledSystem(subsystems, couplings, tuple(tuple(e) for e in d["edges"]))
+        design_data = {**d["design"], "omega": _dense(d["design"]["omega"])}
+        # written by dmpc run from the design it verified, and checked against its digest below
+        design = design_from_json(system, design_data, horizon=int(design_data["horizon"]),
+                                  alpha0=np.array(design_data["alpha0"], float), beta0=float(design_data["beta0"]),
+                                  verify=False)
+        # the tube margins travel as computed: recomputing them would need the scenario's revision bounds
+        tightening = [Tightening(np.array(t["input"], float).reshape(design.horizon, -1),
+                                 np.array(t["state"], float).reshape(design.horizon + 1, -1),
+                                 np.array(t["terminal"], float)) for t in d["tightening"]]
+        design = dataclasses.replace(design, tightening=tightening, tube=design_data["tube"])
+        plan = FaultPlan.from_json(d["faults"])
+        method = method_spec(str(d.get("method", DEFAULT_METHOD))).name
+        prepared = Prepared(scenario=None, system=system, design=design, digest=design_digest(design, method),
+                            protocol=ProtocolOptions.from_json(d["protocol"]), mode=d["mode"], dt=float(d["dt"]),
+                            deadline=d["deadline"], faults=plan, name=d["name"], coupling=d["coupling"],
+                            method=method)
+    except (OSError, KeyError, TypeError, ValueError, IndexError) as exc:
+        raise ValueError(f"{path}: not a usable run bundle ({exc})") from None
+    if prepared.digest != design_data.get("digest"):
+        raise ValueError(f"{path}: the design does not match its digest")
+    return prepared
