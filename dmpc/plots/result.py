@@ -8,6 +8,7 @@ dashed. The figures are made with pyplot, so a notebook shows them; a script sav
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -38,7 +39,7 @@ def plot_result(result, bounds: bool = True) -> dict:
 
     run = run_data(result)
     head = f"{run.scenario}, {run.method}"
-    with plt.rc_context(STYLE):
+    with plt.rc_context(cast(Any, STYLE)):  # matplotlib types its keys as a Literal of every rc name
         return {"states": _signal_figure(plt, [(run, run.method)], "x", f"{head}: states", bounds),
                 "inputs": _signal_figure(plt, [(run, run.method)], "u", f"{head}: inputs", bounds),
                 "cost": _series_figure(plt, [("J(k)", run.J, dict(_style(run.method), color="C0"), run.method)],
