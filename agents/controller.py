@@ -7,13 +7,14 @@ Pure: no bus; no clock other than the solver's own timing and the caller's, if i
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
 from dmpc.agents.local_qp import LocalQP, QPSolution
 from dmpc.bus.messages import PlanMessage, Release
 from dmpc.core.system import CoupledSystem
-from dmpc.core.trajectories import Plan, assumed_trajectory, coupling_feedforward
+from dmpc.core.trajectories import Plan, assumed_trajectory, coupling_feedforward, relative_to
 from dmpc.methods import DEFAULT_METHOD, Method, terminal_policy
 from dmpc.offline import ControllerDesign
 
@@ -83,6 +84,22 @@ class AgentController:
         c = self.feedforward(k, states, plans)
         return self.qp.solve(states[self.index], c, centre, size)
 
+    def _solve_around(self, release: Release, target: tuple[np.ndarray, np.ndarray], states: dict[int, np.ndarray],
+                      plans: dict[int, Plan | None]) -> QPSolution:
+        """QP_i in deviation coordinates around the released setpoint target (x_s (n,), u_s (m,)),
+        its plan given back around the origin (docs/algorithm.md, "Setpoints")."""
+        x_s, u_s = target
+        if u_s.shape != (self.system.m,):
+            raise ValueError(f"a release's target has {u_s.size} inputs, the system {self.system.m}")
+        system = self.system
+        offsets = {j: (x_s[part], u_s[system.us(j)]) for j, part in self._state_slices.items()}
+        own_x, own_u = offsets[self.index]
+        self.qp.set_target(own_x, own_u)
+        around = {j: x_j - offsets[j][0] for j, x_j in states.items()}
+        moved = {j: relative_to(plan, *offsets[j]) for j, plan in plans.items() if j in offsets}
+        sol = self.solve(release.k, around, release.centres[self._own], float(release.sizes[self.index]), moved)
+        return replace(sol, z=sol.z + own_x, v=sol.v + own_u)
+
     def answer(self, release: Release, plans: dict[int, Plan | None], run_id: str,
                clock: Callable[[], float] | None = None) -> PlanMessage:
         """Solve QP_i for ``release`` and return the plan message that answers it.
@@ -101,7 +118,12 @@ class AgentController:
         """
         x = release.x
         states = {j: x[part] for j, part in self._state_slices.items()}
-        sol = self.solve(release.k, states, release.centres[self._own], float(release.sizes[self.index]), plans)
+        target = release.target
+        if target is None:
+            self.qp.set_target(None, None)
+            sol = self.solve(release.k, states, release.centres[self._own], float(release.sizes[self.index]), plans)
+        else:
+            sol = self._solve_around(release, target, states, plans)
         return PlanMessage(run=run_id, k=release.k, round=release.round, sender=self.name,
                            status=sol.status.value, z=sol.z, v=sol.v, cost=sol.cost, solve_time=sol.solve_time,
                            qp_iterations=int(sol.iterations), sent_at=clock() if clock is not None else 0.0)

@@ -66,6 +66,11 @@ class LocalQP:
         lower, upper = self.terminal.bounds(centre, size)
         return self._qp.solve(x, coupling, lower, upper)
 
+    def set_target(self, x_s: np.ndarray | None, u_s: np.ndarray | None) -> None:
+        """Solve in deviation coordinates around the steady state x_s (n,), u_s (m,) of this
+        subsystem from now on: U_i - u_s and X_i - x_s (None: the origin)."""
+        self._qp.set_offset(x_s, u_s)
+
     def cost(self, z: np.ndarray, v: np.ndarray) -> float:
         """Own cost J_i of a plan: z shape (N+1, n), v shape (N, m)."""
         return self._qp.cost(z, v)

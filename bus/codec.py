@@ -67,7 +67,7 @@ def wire_fields(cls: type) -> tuple[str, ...]:
 
 _FIELD_SETS: dict[type, frozenset] = {cls: frozenset(names) for cls, names in _FIELDS.items()}
 # fields a sender may leave out (added after the first release of the format); decode fills in the default
-_OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"})}
+_OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"}), Release: frozenset({"target"})}
 
 
 def encode(msg: Message) -> bytes:
@@ -106,7 +106,8 @@ def _release_body(m: Release) -> dict:
             "iteration": _scalar(m.round), "x": _wire_array(m.x), "centres": _wire_array(m.centres),
             "sizes": _wire_array(m.sizes), "assumed": _wire_array(m.assumed), "sender": m.sender,
             "skipped": list(m.skipped),
-            "provided": {name: [_wire_array(z), _wire_array(v)] for name, (z, v) in m.provided.items()}}
+            "provided": {name: [_wire_array(z), _wire_array(v)] for name, (z, v) in m.provided.items()},
+            **({} if m.target is None else {"target": [_wire_array(m.target[0]), _wire_array(m.target[1])]})}
 
 
 def _to_wire(value):
@@ -233,9 +234,17 @@ def _parse_release(b: dict) -> Release:
         if z.shape[0] != v.shape[0] + 1:
             raise DecodeError(f"provided[{key}]: z needs one row more than v")
         parsed_provided[key] = (z, v)
+    target = None
+    if "target" in b:
+        pair = b["target"]
+        if type(pair) is not list or len(pair) != 2:
+            raise DecodeError("target: expected [x_s, u_s]")
+        target = (_array(pair[0], "target.x", 1), _array(pair[1], "target.u", 1))
+        if target[0].shape != x.shape:
+            raise DecodeError(f"target: x_s has {target[0].size} entries for a state of {x.size}")
     return Release(run=_str(b["run"], "run"), k=_int(b, "k"), round=_int(b, "iteration"), x=x, centres=centres,
                    sizes=sizes, assumed=assumed, sender=_str(b["sender"], "sender"), skipped=tuple(skipped),
-                   provided=parsed_provided)
+                   provided=parsed_provided, target=target)
 
 
 def _parse_plan(b: dict) -> PlanMessage:

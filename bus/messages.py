@@ -55,6 +55,9 @@ class Release:
     provided : dict name -> (z, v)
         Plans supplied by the coordinator itself (the centralised seed at k = 0); they stand for
         the plans named in ``assumed``. Usually empty.
+    target : (ndarray (n,), ndarray (m,)) or None
+        The setpoint target (x_s, u_s) of the whole system the step is controlled around; None
+        (left out on the wire) at the origin.
     """
 
     run: str
@@ -67,6 +70,7 @@ class Release:
     sender: str = COORDINATOR
     skipped: tuple[str, ...] = ()
     provided: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    target: tuple[np.ndarray, np.ndarray] | None = None
 
     def reference(self, j: int) -> tuple[int, int] | None:
         """The plan (k', round') agent j's assumed trajectory is built from, or None (K-rollout)."""

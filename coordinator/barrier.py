@@ -26,12 +26,14 @@ from dmpc.core.mpc_qp import plan_cost
 from dmpc.core.qp_status import SOLVED, QPStatus
 from dmpc.core.steps import NO_SEED, ProtocolOptions, StepRecord
 from dmpc.core.system import CoupledSystem, LinearSet, project_onto
-from dmpc.core.trajectories import Plan, candidate_plan, shifted_input
+from dmpc.core.trajectories import Plan, candidate_plan, relative_to, shifted_input
 from dmpc.methods import DEFAULT_METHOD, terminal_policy
 from dmpc.methods.policy import TerminalPolicy, TerminalState
 from dmpc.offline import ControllerDesign
 from dmpc.plant.dynamics import Plant
 from dmpc.security.rejects import MAX_MAGNITUDE, STALE, clearly_in_range, magnitude
+from dmpc.tracking.targets import Target
+from dmpc.tracking.tracker import Tracker, TrackingStep
 
 KNOWN_STATUSES = frozenset(s.value for s in QPStatus)
 # A solved plan may leave U_i by this much times max(1, |bound|): OSQP solves to about 1e-7,
@@ -143,6 +145,8 @@ class _PendingStep:
     r: np.ndarray | None
     terminal: TerminalState
     max_change: Callable[[], float]
+    tracking: TrackingStep | None = None
+    target: Target | None = None  # the target of the next step (with a tracker)
 
     def record(self, x_next: np.ndarray, step_time: float, system: CoupledSystem) -> StepRecord:
         agents, nxt = self.agents, self.terminal
@@ -154,7 +158,7 @@ class _PendingStep:
             fallback_reason=[a.reason for a in agents], solve_time=[a.solve_time for a in agents],
             qp_iterations=[a.qp_iterations for a in agents], plans_z=[a.z for a in agents],
             plans_v=[a.v for a in agents], latency=[a.latency for a in agents], note=self.note, r=self.r,
-            r_next=nxt.r, x_next=x_next, step_time=step_time)
+            r_next=nxt.r, x_next=x_next, step_time=step_time, tracking=self.tracking)
 
 
 class Coordinator:
@@ -177,10 +181,14 @@ class Coordinator:
         The host's clock in seconds, read when a plan is accepted, when the host opens a step
         (:meth:`step_opened`) and when a step completes: the records' latency and step time.
         Without one both are NaN.
+    tracker : Tracker, optional
+        The setpoint targets (docs/algorithm.md, "Setpoints"): each step's controllers work in
+        deviation coordinates around the target it applies. None: the origin throughout.
     """
 
     def __init__(self, system: CoupledSystem, design: ControllerDesign, plant: Plant | None, options: ProtocolOptions,
-                 run_id: str, policy: TerminalPolicy | None = None, clock: Callable[[], float] | None = None) -> None:
+                 run_id: str, policy: TerminalPolicy | None = None, clock: Callable[[], float] | None = None,
+                 tracker: Tracker | None = None) -> None:
         self.system = system
         self.design = design
         self.plant = plant
@@ -218,6 +226,8 @@ class Coordinator:
         # that refers to one carries it (its agent may keep it for many rounds, even steps)
         self._seeded: dict[int, Plan] = {}
         self._note = self.terminal.note
+        self.tracker = tracker
+        self._target: Target | None = None  # the open step's target, None at the origin
 
     @property
     def alpha(self) -> np.ndarray:
@@ -396,7 +406,8 @@ class Coordinator:
             release = Release(run=self.run_id, k=self.k, round=self.round, x=self.x.copy(),
                               centres=centres, sizes=sizes, assumed=assumed,
                               skipped=tuple(self.names[i] for i in sorted(self._lost)),
-                              provided=self._provided_plans())
+                              provided=self._provided_plans(),
+                              target=None if self._target is None else (self._target.x, self._target.u))
             actions.append(SendRelease(release))
         actions.append(RoundOpened(self.k, self.round))
         actions.extend(self._maybe_close_round())
@@ -470,7 +481,7 @@ class Coordinator:
         """:meth:`_round_change` of the round closing now, to be measured later: what it reads is
         taken now (the plans are never changed once received; the last plans and the state are
         replaced when the step completes)."""
-        k, r, latest, prev_round = self.k, self.round, self._step_latest, self._prev_round
+        k, r, latest, prev_round, target = self.k, self.round, self._step_latest, self._prev_round, self._target
         x_parts = self.system.split_state(self.x.copy()) if r == 0 else None
         last = list(self.last_plan) if r == 0 else None
 
@@ -478,8 +489,11 @@ class Coordinator:
             top = 0.0
             for i, plan in latest.items():
                 if r == 0:
-                    z_ref, v_ref = candidate_plan(last[i], k, x_parts[i], self.N, self._gamma[i], self._K[i])
-                    z_ref[0] = x_parts[i]
+                    last_i, x_i, offset = self._around(target, i, last[i], x_parts[i])
+                    z_ref, v_ref = candidate_plan(last_i, k, x_i, self.N, self._gamma[i], self._K[i])
+                    z_ref[0] = x_i
+                    if offset is not None:
+                        z_ref, v_ref = z_ref + offset[0], v_ref + offset[1]
                 else:
                     prev = prev_round.get(i)
                     if prev is None:
@@ -500,10 +514,19 @@ class Coordinator:
         agents = [self._agent_step(i, x_parts[i]) for i in range(system.M)]
         u = np.concatenate([a.u for a in agents])
         eta = np.concatenate([a.eta for a in agents])
-        nxt = self.policy.update(self.terminal, eta)
+        tracking = target = None
+        if self.tracker is not None and self.tracker.active:
+            tracking = self.tracker.step(self.k)
+            target = self.tracker.advance(self.k + 1, eta)
+        elif self.tracker is not None:
+            tracking = self.tracker.idle
+        if target is None or target.is_origin:
+            nxt = self.policy.update(self.terminal, eta)
+        else:  # the next step's terminal set is around its target (docs/algorithm.md, "Setpoints")
+            nxt = self.policy.update(self.terminal, eta - target.x, target.scale)
         pending = _PendingStep(k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta, rounds=self.round + 1,
                                agents=agents, note="; ".join(t for t in (self._note, nxt.note) if t), r=self.terminal.r,
-                               terminal=nxt, max_change=max_change)
+                               terminal=nxt, max_change=max_change, tracking=tracking, target=target)
         if self.plant is None:
             self._pending = pending
             return [ApplyInputs(self.k, u)]
@@ -514,6 +537,7 @@ class Coordinator:
         nxt = pending.terminal
         actions: list = [StepCompleted(partial(pending.record, x_next.copy(), self._now() - self._opened_at, self.system))]
         self.terminal = nxt
+        self._target = None if pending.target is None or pending.target.is_origin else pending.target
         self.k += 1
         self.round = 0
         self._step_latest = {}
@@ -542,23 +566,31 @@ class Coordinator:
             latency = self._received_at.get(i, math.nan) - msg.sent_at
         if plan is not None:
             self.last_plan[i] = plan
-            J = float(msg.cost) if self._usable(i, msg) else self._candidate_cost(i, plan)
+            usable = self._usable(i, msg)
+            J = float(msg.cost) if usable else self._candidate_cost(i, self._around(self._target, i, plan, x_i)[0])
             return _AgentStep(u=plan.v[0], eta=plan.z[-1], J=J, status=status, fallback=False, reason="",
                               solve_time=solve_time, qp_iterations=qp_iterations, latency=latency, z=plan.z,
                               v=plan.v)
-        last = self.last_plan[i]
         sub = self.system.subsystems[i]
+        last, x_i, offset = self._around(self._target, i, self.last_plan[i], x_i)
         u_c = shifted_input(last, self.k, x_i, self._gamma[i], self._K[i])
-        z_c, v_c = self._candidate(i, last, x_i)
-        return _AgentStep(u=project_onto(sub.input_set, u_c),
-                          eta=self.policy.fallback_terminal(self.terminal, i, z_c[-1]),
+        z_c, v_c = candidate_plan(last, self.k, x_i, self.N, self._gamma[i], self._K[i])
+        eta = self.policy.fallback_terminal(self.terminal, i, z_c[-1])
+        if offset is not None:
+            u_c, z_c, v_c, eta = u_c + offset[1], z_c + offset[0], v_c + offset[1], eta + offset[0]
+        return _AgentStep(u=project_onto(sub.input_set, u_c), eta=eta,
                           J=self._candidate_cost(i, last) if last is not None else math.nan, status=status,
                           fallback=True, reason=self._fallback_reason(i, msg), solve_time=solve_time,
                           qp_iterations=qp_iterations, latency=latency, z=z_c, v=v_c)
 
-    def _candidate(self, i: int, last: Plan | None, x_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The shifted candidate plan of agent i at this step, shapes (N+1, n_i), (N, m_i)."""
-        return candidate_plan(last, self.k, x_i, self.N, self._gamma[i], self._K[i])
+    def _around(self, target: Target | None, i: int, plan: Plan | None,
+                x_i: np.ndarray) -> tuple[Plan | None, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """Agent i's plan and state x_i (n_i,) in deviation coordinates around ``target`` (unchanged
+        without one), and the offsets (x_s_i, u_s_i) that take them back (None without one)."""
+        if target is None:
+            return plan, x_i, None
+        x_s, u_s = target.x[self.system.xs(i)], target.u[self.system.us(i)]
+        return relative_to(plan, x_s, u_s), x_i - x_s, (x_s, u_s)
 
     def _candidate_cost(self, i: int, plan: Plan) -> float:
         sub = self.system.subsystems[i]

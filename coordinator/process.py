@@ -11,6 +11,7 @@ from dmpc.coordinator.barrier import Coordinator
 from dmpc.coordinator.node import CoordinatorNode, RunObserver
 from dmpc.core.steps import StepRecord
 from dmpc.methods import terminal_policy
+from dmpc.methods.policy import BoxPolicy
 from dmpc.plant.dynamics import Plant
 from dmpc.plant.models import make_plant
 from dmpc.prepared import Prepared
@@ -19,6 +20,7 @@ from dmpc.records.files import LOGS, STEP_LOG
 from dmpc.records.run_folder import RecordWriteError
 from dmpc.records.session import RunRecorder
 from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
+from dmpc.tracking.tracker import Tracker
 
 LINGER = 2.0
 REPORT_WAIT = 1.0
@@ -42,8 +44,13 @@ def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callabl
     ``dmpc plant`` and ``dmpc simulate`` (:mod:`dmpc.runtime.inprocess`) all do it here.
     """
     policy = terminal_policy(prepared.method, prepared.system, prepared.design)
+    tracker = None
+    if prepared.tracks:
+        assert isinstance(policy, BoxPolicy)
+        tracker = Tracker(prepared.system, prepared.design.terminal, policy.closed_loop, prepared.setpoints,
+                          prepared.setpoint_margin)
     coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id, policy=policy,
-                              clock=bus.now)
+                              clock=bus.now, tracker=tracker)
     return CoordinatorNode(bus, coordinator, prepared.digest, on_step, mode=prepared.mode, dt=prepared.dt,
                            deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry,
                            plant_timeout=plant_timeout)

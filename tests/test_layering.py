@@ -183,8 +183,9 @@ def _is_reason(comment: str) -> bool:
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("dmpc.core", "dmpc.terminal"),  # the numerical core; what the terminal shows and the exit codes
-    ("dmpc.offline", "dmpc.tracking", "dmpc.bus"),  # offline design, setpoint targets, transport
-    ("dmpc.methods", "dmpc.security"),  # the methods' terminal sets; TLS, access control, checks of what arrives
+    ("dmpc.offline", "dmpc.bus"),  # offline design, transport
+    ("dmpc.methods", "dmpc.tracking", "dmpc.security"),  # the methods' terminal sets; setpoint targets and the
+    # reference governor; TLS, access control, checks of what arrives
     ("dmpc.scenario",),  # scenario files
     ("dmpc.prepared",),  # a prepared run: what every role is built from
     ("dmpc.records",),  # the run folder

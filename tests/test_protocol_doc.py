@@ -177,7 +177,7 @@ def examples() -> dict[str, object]:
     return {
         "release": Release(run="r", k=1, round=2, x=np.zeros(4), centres=np.zeros(4), sizes=np.ones(2),
                            assumed=np.array([[-1, -1], [0, 1]], dtype=np.int64), skipped=("b",),
-                           provided={"a": (z, v)}),
+                           provided={"a": (z, v)}, target=(np.zeros(4), np.zeros(2))),
         "plan": PlanMessage(run="r", k=1, round=2, sender="a", status="solved", z=z, v=v, cost=1.0,
                             solve_time=0.01, qp_iterations=25, sent_at=12.5),
         "ready": Ready(run="r", sender="a", design_digest="d", pid=7, scenario="paper", horizon=2),

@@ -33,10 +33,11 @@ from tests.test_layering import modules_of, package_dirs
 ROOT = Path(__file__).resolve().parents[1]
 
 CORE_PACKAGES = {"dmpc.core": ROOT / "dmpc" / "core", "dmpc.offline": ROOT / "dmpc" / "offline",
-                 "dmpc.methods": ROOT / "dmpc" / "methods"}
+                 "dmpc.methods": ROOT / "dmpc" / "methods", "dmpc.tracking": ROOT / "dmpc" / "tracking"}
 """Every module of these packages is core: the model, its sets, projections, the discretisation, the
 QPs and their statuses, the trajectories, the protocol options and the record of one step
-(dmpc.core), the offline design and its record (dmpc.offline), the methods' terminal policies."""
+(dmpc.core), the offline design and its record (dmpc.offline), the methods' terminal policies,
+the setpoint targets and the reference governor (dmpc.tracking)."""
 CORE_MODULES = {
     "dmpc.agents": ROOT / "agents" / "__init__.py",
     "dmpc.agents.local_qp": ROOT / "agents" / "local_qp.py",

@@ -6,15 +6,15 @@ from __future__ import annotations
 import cvxpy as cp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dmpc.setup import prepare
-from dmpc.scenario import load_scenario
 from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
+from dmpc.scenario import load_scenario
+from dmpc.setup import prepare
 from dmpc.tracking.governor import ReferenceGovernor
 from dmpc.tracking.schedule import Schedule, SetpointEntry
-from dmpc.tracking.targets import DEFAULT_MARGIN, Request, Target, TargetError, TargetSpace
+from dmpc.tracking.targets import DEFAULT_MARGIN, Request, TargetError, TargetSpace
 from tests.helpers.reference import PAPER, U_BAR, chain_matrices
 
 MARGIN = DEFAULT_MARGIN
@@ -32,12 +32,11 @@ def space(paper):
 
 @pytest.fixture(scope="module")
 def governor(paper, space):
-    omega = paper.design.terminal.omega
     A, B = chain_matrices(4)
     K = np.zeros((4, 8))
     for i, k in enumerate(paper.design.gains.K):
         K[i, 2 * i:2 * i + 2] = k
-    return ReferenceGovernor(space, omega, np.abs(omega).sum(axis=1), A + B @ K), A + B @ K, K
+    return ReferenceGovernor(space, paper.design.terminal, A + B @ K), A + B @ K, K
 
 
 def request(n: int, m: int, x: dict | None = None, u: dict | None = None) -> Request:

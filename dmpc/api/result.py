@@ -19,7 +19,14 @@ from dmpc.methods import DEFAULT_METHOD
 from dmpc.offline.record import Design
 from dmpc.plots.result import plot_result
 from dmpc.records.files import SUMMARY, TRAJECTORY
-from dmpc.records.reader import RunFolderNotReadable, is_finished_run_folder, read_run
+from dmpc.records.reader import (
+    STATE_KEYS,
+    TRACKING_KEYS,
+    RunFolderNotReadable,
+    is_finished_run_folder,
+    read_run,
+    tracking_arrays,
+)
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -58,6 +65,15 @@ class Result:
     method : str
     folder : Path or None
         The run folder (None when the run was written to a temporary folder).
+    setpoint, setpoint_u : mapping name -> ndarray, shape (K, n_i) and (K, m_i)
+        The components requested at each step (NaN where free; all NaN without setpoints).
+    reference, reference_u : mapping name -> ndarray, shape (K, n_i) and (K, m_i)
+        The target of each step's request: a steady state of the coupled system (the nearest
+        admissible one when the request is unreachable; zeros without setpoints).
+    target, target_u : mapping name -> ndarray, shape (K, n_i) and (K, m_i)
+        The target each step applied, moved toward the reference by the reference governor.
+    governor : ndarray, shape (K,)
+        The fraction of the way to the reference the applied target moved at each step (1: there).
     """
 
     names: tuple[str, ...]
@@ -77,6 +93,13 @@ class Result:
     inputs: Mapping[str, tuple[Quantity, ...]] = field(repr=False)
     method: str = DEFAULT_METHOD
     folder: Path | None = None
+    setpoint: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
+    setpoint_u: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
+    reference: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
+    reference_u: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
+    target: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
+    target_u: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
+    governor: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     def __repr__(self) -> str:
         where = f", folder='{self.folder}'" if self.folder is not None else ""
@@ -159,10 +182,13 @@ def load_run(folder, *, in_temporary_folder: bool = False) -> Result:
     states, inputs = records.quantities()
     x, u = records.arrays["x"], records.arrays["u"]
     design = Design.from_json(records.design, names) if records.design else None
+    tracked = tracking_arrays(records.arrays, u.shape[0], x.shape[1], u.shape[1])
     return Result(
         names=tuple(names), t=time_axis(u.shape[0], records.dt), dt=records.dt, x=_split(x, names, n),
         u=_split(u, names, m), w=_split(records.disturbance(), names, n), alpha=_split(records.arrays["alpha"], names, n),
         beta=records.arrays["beta"], J=records.arrays["J"],
         cost=float(summary.get("closed_loop_cost", np.nan)), verdict=str(summary.get("verdict", "")),
         summary=summary, design=design, states=MappingProxyType(states), inputs=MappingProxyType(inputs),
-        method=str(summary.get("method", DEFAULT_METHOD)), folder=None if in_temporary_folder else folder)
+        method=str(summary.get("method", DEFAULT_METHOD)), folder=None if in_temporary_folder else folder,
+        governor=tracked["governor"],
+        **{key: _split(tracked[key], names, n if key in STATE_KEYS else m) for key in TRACKING_KEYS})

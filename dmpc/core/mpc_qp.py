@@ -145,12 +145,16 @@ class MpcQP:
         blocks.append(sp.hstack([sp.csc_matrix((N * Hu.shape[0], nz)), sp.kron(sp.eye(N), Hu)]))
         lower.append(np.asarray(inputs.lower, float).ravel())
         upper.append(np.asarray(inputs.upper, float).ravel())
+        # the stage rows, to move them with a setpoint target (set_offset)
+        self._stages = [(slice(nz, nz + lower[-1].size), np.asarray(Hu, float), N)]
         if states is not None and states.H.shape[0]:
             Hx = states.H
             sel = sp.hstack([sp.csc_matrix((N, 1)), sp.eye(N)])
             blocks.append(sp.hstack([sp.kron(sel, Hx), sp.csc_matrix((N * Hx.shape[0], nv))]))
             lower.append(np.asarray(states.lower, float).ravel())
             upper.append(np.asarray(states.upper, float).ravel())
+            start = self._stages[0][0].stop
+            self._stages.append((slice(start, start + lower[-1].size), np.asarray(Hx, float), N))
         T = sp.csc_matrix(terminal)
         start = sum(b.size for b in lower)
         self._terminal = slice(start, start + T.shape[0])
@@ -168,6 +172,29 @@ class MpcQP:
         self._refine = int(opts["polish_refine_iter"])
         self._nvars = nz + nv
         self._cold = False
+        self._base = (self._l.copy(), self._u.copy())  # the stage bounds around the origin
+        self._offset: tuple[np.ndarray, np.ndarray] | None = None
+
+    def set_offset(self, x_s: np.ndarray | None, u_s: np.ndarray | None) -> None:
+        """Move the stage rows to deviation coordinates around a steady state: U - u_s, X - x_s.
+
+        x_s (n,) and u_s (m,); None for both (or zeros) is the origin, the rows as set up.
+        Only the bounds change, so the factorisation is kept.
+        """
+        if x_s is None or u_s is None or (not np.any(x_s) and not np.any(u_s)):
+            if self._offset is None:
+                return
+            self._offset = None
+            for rows, _, _ in self._stages:
+                self._l[rows], self._u[rows] = self._base[0][rows], self._base[1][rows]
+            return
+        if self._offset is not None and np.array_equal(self._offset[0], x_s) and np.array_equal(self._offset[1], u_s):
+            return
+        self._offset = (np.array(x_s, float), np.array(u_s, float))
+        for (rows, H, steps), shift in zip(self._stages, (u_s, x_s)):
+            moved = np.tile(H @ shift, steps)
+            self._l[rows] = np.clip(self._base[0][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
+            self._u[rows] = np.clip(self._base[1][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
 
     def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
               terminal_upper: np.ndarray) -> QPSolution:

@@ -6,7 +6,7 @@ folder that writes them and the live view that shows them, so it sits below all 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -21,6 +21,9 @@ Method = Literal["tv-box", "tv-box-opt", "fixed-box", "ellipsoid", "ellipsoid-ad
 """The name of a control method (``options.method``, ``--method``; dmpc.methods says what each does)."""
 METHOD_NAMES: tuple[Method, ...] = get_args(Method)
 DEFAULT_METHOD: Method = "tv-box"
+SETPOINT_METHODS: tuple[Method, ...] = ("tv-box", "tv-box-opt")
+"""The methods that track setpoints: their terminal boxes move with the target (docs/algorithm.md,
+"Setpoints")."""
 
 NO_SEED = "no centralised seed: "
 """Starts the part of a k = 0 note that says why the centralised QP gave no plan to start from,
@@ -67,6 +70,9 @@ class StepRecord:
     ``r`` and ``r_next`` (M,) are the ellipsoid levels of the ellipsoid methods (None otherwise);
     those methods record alpha = 0 and beta = NaN.
 
+    ``tracking`` (a :class:`dmpc.tracking.tracker.TrackingStep`) says what the step tracked: the
+    request, its target and the target applied (None where nothing was ever requested).
+
     ``latency`` (M,) is, per agent, the time from the agent publishing the plan the step used to
     the host receiving it (NaN for an agent without a plan, or where no clock is kept);
     ``step_time`` is the step's wall time on the host's clock (NaN where none is kept).
@@ -97,3 +103,4 @@ class StepRecord:
     note: str = ""
     r: np.ndarray | None = None
     r_next: np.ndarray | None = None
+    tracking: Any = None

@@ -30,6 +30,13 @@ class Plan:
     v: np.ndarray
 
 
+def relative_to(plan: Plan | None, x_s: np.ndarray, u_s: np.ndarray) -> Plan | None:
+    """The plan in deviation coordinates around a steady state: z - x_s (x_s (n,)), v - u_s (u_s (m,))."""
+    if plan is None:
+        return None
+    return Plan(plan.k, plan.round, plan.z - x_s, plan.v - u_s)
+
+
 def continued(plan: Plan, length: int, Gamma: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The plan extended with the terminal controller.
 

@@ -66,8 +66,12 @@ class TerminalPolicy(ABC):
         """The terminal parameters at k = 0 for the initial state x0 (n,)."""
 
     @abstractmethod
-    def update(self, state: TerminalState, eta: np.ndarray) -> TerminalState:
-        """The parameters of step k+1 from those of step k and the terminal states eta (n,)."""
+    def update(self, state: TerminalState, eta: np.ndarray, scale: float = 1.0) -> TerminalState:
+        """The parameters of step k+1 from those of step k and the terminal states eta (n,).
+
+        With a setpoint target, eta is taken around the target of step k+1 and ``scale`` is that
+        target's lambda: the terminal set is lambda X^f around it (dmpc.tracking.targets).
+        """
 
     @abstractmethod
     def release(self, state: TerminalState, i: int) -> tuple[np.ndarray, float]:
@@ -114,8 +118,8 @@ class BoxPolicy(TerminalPolicy):
         self._terminals: dict[int, BoxTerminal] = {}
 
     @cached_property
-    def _AK(self) -> np.ndarray:
-        # only the coordinator updates the boxes: an agent never builds the global A+BK
+    def closed_loop(self) -> np.ndarray:
+        """A + BK, shape (n, n); only the coordinator updates the boxes: an agent never builds it."""
         return self.system.A + self.system.B @ self.design.gains.K_global()
 
     def agent_terminal(self, i: int) -> AgentTerminal:
@@ -131,11 +135,11 @@ class BoxPolicy(TerminalPolicy):
                 "k=0: the optimisation of alpha(0) is infeasible; the scenario's alpha(0), beta(0) are used")
         return TerminalState(box.alpha, box.beta, note=note)
 
-    def update(self, state: TerminalState, eta: np.ndarray) -> TerminalState:
+    def update(self, state: TerminalState, eta: np.ndarray, scale: float = 1.0) -> TerminalState:
         if not self.time_varying:
             return TerminalState(state.alpha.copy(), state.beta)
-        alpha = self._AK @ eta
-        return TerminalState(alpha, self.design.terminal.sigma(alpha))
+        alpha = self.closed_loop @ eta
+        return TerminalState(alpha, self.design.terminal.sigma(alpha, scale))
 
     def release(self, state: TerminalState, i: int) -> tuple[np.ndarray, float]:
         return state.alpha[self.system.xs(i)].copy(), state.beta
@@ -188,7 +192,7 @@ class EllipsoidPolicy(TerminalPolicy):
     def initial(self, x0: np.ndarray) -> TerminalState:
         return TerminalState(np.zeros(self.system.n), float("nan"), np.full(self.system.M, self.level0))
 
-    def update(self, state: TerminalState, eta: np.ndarray) -> TerminalState:
+    def update(self, state: TerminalState, eta: np.ndarray, scale: float = 1.0) -> TerminalState:
         if not self.adaptive:
             return TerminalState(state.alpha.copy(), state.beta, state.r.copy())
         raw = state.r + np.array([eta @ G @ eta for G in self._gamma])

@@ -51,15 +51,18 @@ class TerminalSet:
         """Omega as a sparse matrix (its rows reach a few subsystems each)."""
         return sp.csr_matrix(self.omega)
 
-    def sigma(self, alpha: np.ndarray) -> float:
-        """Largest theta with the cube ||x - alpha||_inf <= theta inside X^f.
+    def sigma(self, alpha: np.ndarray, scale: float = 1.0) -> float:
+        """Largest theta with the cube ||x - alpha||_inf <= theta inside ``scale`` X^f.
 
         Parameters
         ----------
         alpha : ndarray, shape (n,)
+        scale : float
+            The terminal set scaled about the origin, {x : Omega x <= scale} (the terminal set around
+            a setpoint target, dmpc.tracking.targets); 1 for X^f itself.
         """
         omega = self.omega if self.omega.size <= DENSE_SIGMA else self.sparse
-        return float(np.min((1.0 - omega @ alpha) / self.row_norms))
+        return float(np.min((scale - omega @ alpha) / self.row_norms))
 
     def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
         return bool(np.all(self.omega @ x <= 1.0 + tol))

@@ -15,9 +15,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dmpc.bus.faults import FaultPlan
-from dmpc.core.steps import DEFAULT_METHOD, Coupling, Method, Mode, ProtocolOptions
+from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, Coupling, Method, Mode, ProtocolOptions
 from dmpc.core.system import CoupledSystem
 from dmpc.offline import ControllerDesign
+from dmpc.tracking.schedule import SetpointEntry
+from dmpc.tracking.targets import DEFAULT_MARGIN
 
 if TYPE_CHECKING:  # the scenario package needs pydantic, which agent processes can do without
     from dmpc.scenario import Scenario
@@ -96,6 +98,10 @@ class Prepared:
         What the plant simulates (model, disturbance, the user's function); the nominal model by default.
     model : dict or None
         For ``time: continuous``, the discretisation (``dmpc.core.discretisation.DiscreteModel.to_json``).
+    setpoints : tuple of SetpointEntry
+        The scenario's setpoint schedule (empty: the origin throughout).
+    setpoint_margin : float
+        The fraction of every bound setpoint targets keep free.
     """
 
     scenario: "Scenario | None"
@@ -112,6 +118,13 @@ class Prepared:
     method: Method = DEFAULT_METHOD
     plant: PlantSetup = PlantSetup()
     model: dict | None = None
+    setpoints: tuple[SetpointEntry, ...] = ()
+    setpoint_margin: float = DEFAULT_MARGIN
+
+    @property
+    def tracks(self) -> bool:
+        """True if the method tracks setpoints (the records carry the targets)."""
+        return self.method in SETPOINT_METHODS
 
     @property
     def names(self) -> list[str]:

@@ -111,6 +111,11 @@ class StepColumns:
         }
         if rec.r is not None:
             values["r"] = rec.r
+        if rec.tracking is not None:
+            t = rec.tracking
+            values.update({"setpoint": t.request.x, "setpoint_u": t.request.u, "reference": t.reference.x,
+                           "reference_u": t.reference.u, "target": t.applied.x, "target_u": t.applied.u,
+                           "governor": t.theta})
         for i, s in enumerate(self.system.subsystems):
             values[f"plan_z_{s.name}"] = rec.plans_z[i]
             values[f"plan_v_{s.name}"] = rec.plans_v[i]

@@ -84,6 +84,23 @@ class RunRecords:
         return w
 
 
+TRACKING_KEYS = ("setpoint", "setpoint_u", "reference", "reference_u", "target", "target_u")
+"""The setpoint arrays of trajectory.npz, (K, n) for the states' and (K, m) for the inputs'."""
+STATE_KEYS = ("setpoint", "reference", "target")
+
+
+def tracking_arrays(arrays: dict, steps: int, n: int, m: int) -> dict[str, np.ndarray]:
+    """The setpoint arrays of a run and ``governor`` (K,), as a run without setpoints has them
+    where trajectory.npz has none (the origin, nothing requested, the governor at 1)."""
+    out = {}
+    for key in TRACKING_KEYS:
+        size = n if key in STATE_KEYS else m
+        default = np.full((steps, size), np.nan) if key.startswith("setpoint") else np.zeros((steps, size))
+        out[key] = np.asarray(arrays[key], float) if key in arrays else default
+    out["governor"] = np.asarray(arrays["governor"], float) if "governor" in arrays else np.ones(steps)
+    return out
+
+
 def read_run(path, notes: list[str] | None = None) -> RunRecords:
     """Read a run folder (``notes`` gets what the reader had to work around).
 

@@ -152,6 +152,29 @@ def feasibility_text(summary: dict) -> str:
     return "no: " + "; ".join(parts)
 
 
+MAX_TRACKED_ROWS = 8
+"""Requested components listed in the summary table (the rest are in summary.json)."""
+
+
+def tracking_lines(tracking: dict | None) -> list[tuple[str, str]]:
+    """Rows of the summary table for setpoints: per component requested at the end, the value
+    asked and the error from it; and the steps where the reference governor held a target back."""
+    if not tracking:
+        return []
+    rows = []
+    shown = tracking["components"][:MAX_TRACKED_ROWS]
+    for c in shown:
+        rows.append((f"setpoint {c['subsystem']}: {c['component']}",
+                     f"{c['asked']:.6g}, reached {c['final']:.6g} (error {c['error']:.2g})"))
+    more = len(tracking["components"]) - len(shown)
+    if more > 0:
+        rows.append(("setpoints", f"and {more} more components (summary.json, tracking)"))
+    governed = tracking["governor_steps"]
+    if governed:
+        rows.append(("reference governor", f"held the target back at {len(governed)} step(s) (first k = {governed[0]})"))
+    return rows
+
+
 def print_summary(summary: dict, out) -> None:
     """One screen: the verdict and its reasons, then feasibility, fallbacks, cost, convergence,
     timing, and where the records are."""
@@ -173,6 +196,8 @@ def print_summary(summary: dict, out) -> None:
     table.add_row(*first_costs(J))
     table.add_row("closed-loop cost", number_text(summary["closed_loop_cost"]))
     table.add_row("||x(end)||_inf", f"{summary['final_state_norm_inf']:.3g}")
+    for line in tracking_lines(summary.get("tracking")):
+        table.add_row(*line)
     if summary.get("solve_time_median_s") is not None:
         table.add_row("QP solve median", f"{summary['solve_time_median_s'] * 1e6:.0f} us")
     if summary.get("step_time_median_s") is not None and summary.get("runtime") != "in-process":

@@ -18,7 +18,12 @@ kind                      class     when
 ``not-converged``         warning   ||x(end)||_inf > ``CONVERGED_FRACTION`` * ||x(0)||_inf
 ``jacobi-cap``            warning   a Jacobi iteration stopped at its cap before its tolerance
 ``inputs-refused``        warning   the plant refused plans whose inputs left U_i
+``setpoint-unreachable``  warning   no admissible steady state meets a requested component: the
+                                    nearest one was tracked (the message names the gap)
 ========================  ========  ==============================================================
+
+With setpoints, ``not-converged`` measures the final state from the target applied at the last
+step, and also says when that target had not reached the request's yet.
 
 The reference size of the divergence test is the larger of ||x(0)||_inf and the largest finite
 state bound, or 1 when both are zero.
@@ -31,6 +36,7 @@ import numpy as np
 
 from dmpc.core.steps import NO_SEED
 from dmpc.core.system import CoupledSystem, LinearSet
+from dmpc.records.tracking import is_tracked, unreachable
 
 BOUND_TOL = 1e-6
 """A bound counts as broken when it is exceeded by more than BOUND_TOL * max(1, |bound|)."""
@@ -269,10 +275,12 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
                                 ", ".join(f"{name}: {count}" for name, count in sorted(refused.items())) + ")",
                                 amount=float(sum(refused.values()))))
     if x.shape[0] and not any(f.kind == "diverged" for f in failures):
-        start, end = float(norms[0]), float(norms[-1])
-        if end > CONVERGED_FRACTION * start and end > 0:
-            warnings.append(Finding("not-converged", f"||x(end)||_inf = {end:.3g}, more than {CONVERGED_FRACTION:g} x "
-                                                     f"||x(0)||_inf = {start:.3g}", amount=end))
+        warnings += _convergence(x, arrays, norms)
+    warnings += [Finding("setpoint-unreachable",
+                         f"subsystem {g['subsystem']}: {g['component']} = {g['asked']:.6g} asked from k = {g['k']} has "
+                         f"no admissible steady state; the nearest, {g['target']:.6g}, is tracked instead "
+                         f"(gap {g['gap']:.3g})", g["subsystem"], [g["k"]], abs(g["gap"]))
+                 for g in unreachable(system, arrays, labels)]
     capped = _capped_steps(arrays, limits)
     if capped:
         change = arrays["max_change"]
@@ -281,6 +289,30 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
                                               f"{len(capped)} step(s) (k = {_steps_text(capped)}; last change up to "
                                               f"{worst:.3g})", steps=capped, amount=worst))
     return Verdict(failures, warnings)
+
+
+def _convergence(x: np.ndarray, arrays: dict[str, np.ndarray], norms: np.ndarray) -> list[Finding]:
+    """``not-converged``: the final state far from the origin, or with setpoints from the last
+    target applied (and that target short of the request's)."""
+    if not is_tracked(arrays):
+        start, end = float(norms[0]), float(norms[-1])
+        if end > CONVERGED_FRACTION * start and end > 0:
+            return [Finding("not-converged", f"||x(end)||_inf = {end:.3g}, more than {CONVERGED_FRACTION:g} x "
+                                             f"||x(0)||_inf = {start:.3g}", amount=end)]
+        return []
+    target, reference = arrays["target"][-1], arrays["reference"][-1]
+    start, end = float(np.max(np.abs(x[0] - target))), float(np.max(np.abs(x[-1] - target)))
+    found = []
+    if end > CONVERGED_FRACTION * start and end > 0:
+        found.append(Finding("not-converged", f"||x(end) - x_s||_inf = {end:.3g} from the last target applied, more "
+                                              f"than {CONVERGED_FRACTION:g} x ||x(0) - x_s||_inf = {start:.3g}",
+                             amount=end))
+    short = float(np.max(np.abs(reference - target)))
+    if short > CONVERGED_FRACTION * max(float(np.max(np.abs(reference))), 1e-12) and short > 0:
+        found.append(Finding("not-converged", f"the target applied at the end is {short:.3g} short of the setpoint's "
+                                              f"(the reference governor moved it {arrays['governor'][-1]:.3g} of the "
+                                              "way at the last step)", amount=short))
+    return found
 
 
 def _capped_steps(arrays: dict[str, np.ndarray], limits: RunLimits) -> list[int]:

@@ -4,12 +4,18 @@ Subsystems are indexed 0..M-1 in file order (a family: "1".."M" -> 0..M-1).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
 from dmpc.offline.tubes import RevisionBound
 from dmpc.scenario.load import ScenarioError
-from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario
+from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario, setpoint_values
+from dmpc.tracking.schedule import SetpointEntry
+
+SETPOINT_TIME_TOLERANCE = 1e-9
+"""A setpoint time within this many steps after a step's time takes effect at that step (rounding of t / dt)."""
 
 __all__ = ["alpha0_vector", "build_system", "discrete_model", "given_gains", "revision_bounds"]
 
@@ -131,3 +137,19 @@ def revision_bounds(scn: Scenario) -> dict:
     """``{index: dmpc.offline.tubes.RevisionBound}`` for the subsystems that declare one."""
     return {i: RevisionBound(state=_array(s.revision_bound.state), input=_array(s.revision_bound.input))
             for i, s in enumerate(scn.resolved_subsystems()) if s.revision_bound is not None}
+
+
+def setpoint_entries(scenario: Scenario) -> tuple[SetpointEntry, ...]:
+    """The scenario's setpoint schedule as entries on step indices (``at`` in seconds turned into
+    the first step at or after that time when the scenario has dt), NaN for free components."""
+    subs = scenario.resolved_subsystems()
+    index = {s.name: i for i, s in enumerate(subs)}
+    entries = []
+    for e, spec in enumerate(scenario.setpoints):
+        i = index[spec.subsystem]
+        path = f"setpoints[{e}]"
+        k = int(spec.at) if scenario.dt is None else int(math.ceil(spec.at / scenario.dt - SETPOINT_TIME_TOLERANCE))
+        x = np.array([np.nan if v is None else v for v in setpoint_values(spec, subs[i], "x", path)], float)
+        u = np.array([np.nan if v is None else v for v in setpoint_values(spec, subs[i], "u", path)], float)
+        entries.append(SetpointEntry(max(k, 0), i, x, u))
+    return tuple(entries)

@@ -20,7 +20,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Fiel
 
 from dmpc.bus.faults import PLANT_PROCESS
 from dmpc.core.errors import DmpcError
-from dmpc.core.steps import DEFAULT_METHOD, Coupling, Method, Mode
+from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, Coupling, Method, Mode
 
 __all__ = [
     "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "DiscretisationSpec", "DisturbanceSpec",
@@ -510,6 +510,46 @@ class OptionsSpec(_Model):
     deadline: Optional[PosFloat] = Field(
         None, description="Seconds an agent has to deliver its plan; null means wait forever in lockstep "
                           "and dt in realtime. A late plan counts as missed (fallback applied).")
+    setpoint_margin: Annotated[float, Field(strict=True, gt=0, lt=1, allow_inf_nan=False)] = Field(
+        0.05, description="Setpoint targets keep this fraction of the way from the origin to every finite bound of "
+                          "X_i and U_i free (in (0, 1)): a request closer to a bound is tracked as near as that allows "
+                          "(docs/algorithm.md, \"Setpoints\").")
+
+
+def _components(value: object) -> object:
+    """Setpoint components: a list of numbers and nulls, or a map state name -> number (or null)."""
+    value = _as_list(value)
+    if isinstance(value, dict):
+        return {str(key): None if v is None else _number(v, f".{key}") for key, v in value.items()}
+    if isinstance(value, (list, tuple)) and value:
+        return [None if v is None else _number(v, f"[{c}]") for c, v in enumerate(value)]
+    raise SpecError("", f"expected a list of numbers and nulls, or a map name -> number, got {_show(value)}")
+
+
+Components = Annotated[Union[list[Optional[float]], dict[str, Optional[float]]], BeforeValidator(_components)]
+
+
+def _setpoint_time(value: object) -> float:
+    out = _number(value, "")
+    if out < 0:
+        raise SpecError("", f"expected a step or a time >= 0, got {_show(value)}")
+    return out
+
+
+class SetpointSpec(_Model):
+    """One entry of the setpoint schedule: from ``at`` on, subsystem ``subsystem`` asks for ``x``
+    (and ``u``); the latest entry of a subsystem at or before a step holds there."""
+
+    at: Annotated[float, BeforeValidator(_setpoint_time)] = Field(
+        description="The step from which the entry holds, or the time in seconds when the scenario has dt (it "
+                    "holds from the first step at or after that time).")
+    subsystem: Name = Field(description="The subsystem's name, as in couplings (integers are converted).")
+    x: Optional[Components] = Field(
+        None, description="Target states: n_i entries, null for a free one; or a map state name -> value (names "
+                          "from the subsystem's 'states'). Omitted: every state free.")
+    u: Optional[Components] = Field(
+        None, description="Target inputs: m_i entries, null for a free one; or a map input name -> value. "
+                          "Omitted: every input free.")
 
 
 class LinkFaultSpec(_Model):
@@ -625,6 +665,10 @@ class Scenario(_Model):
     discretisation: DiscretisationSpec = Field(
         default_factory=DiscretisationSpec, description="How a continuous-time model is discretised.")
     plant: PlantSpec = Field(default_factory=PlantSpec, description="The simulated plant: its model and disturbance.")
+    setpoints: list[SetpointSpec] = Field(
+        default_factory=list, description="The setpoint schedule, piecewise constant: the latest entry of each "
+                                          "subsystem at or before a step holds; a subsystem without one keeps the "
+                                          "origin as its target.")
 
     def resolved_subsystems(self) -> list[SubsystemSpec]:
         """The subsystems in order, with a family expanded."""
@@ -666,6 +710,7 @@ class Scenario(_Model):
         _check_loss(self)
         _check_time(self)
         _check_disturbance(self.plant.disturbance, subs, index)
+        _check_setpoints(self, subs, index)
         return self
 
 
@@ -771,3 +816,54 @@ def _check_disturbance(spec: DisturbanceSpec | None, subs: list[SubsystemSpec], 
             _check_name(name, index, path)
             n = subs[index[name]].n
             check_length(vec, n, path, f"n = {n} states of subsystem '{name}'")
+
+
+def setpoint_values(spec: SetpointSpec, sub: SubsystemTemplate, kind: str, path: str) -> list[float | None]:
+    """The components of ``spec.x`` (``kind`` 'x') or ``spec.u`` ('u') in order, None where free."""
+    given = spec.x if kind == "x" else spec.u
+    size = sub.n if kind == "x" else sub.m
+    if given is None:
+        return [None] * size
+    if isinstance(given, list):
+        what = f"n_i = {size} states" if kind == "x" else f"m_i = {size} inputs"
+        if len(given) != size:
+            raise SpecError(f"{path}.{kind}", f"expected {size} entries ({what} of subsystem '{spec.subsystem}'), "
+                                              f"got {len(given)}")
+        return list(given)
+    labels = sub.states if kind == "x" else sub.inputs
+    if not labels:
+        raise SpecError(f"{path}.{kind}", f"names need the subsystem's '{'states' if kind == 'x' else 'inputs'}' "
+                                          f"(subsystem '{spec.subsystem}' names none): give a list instead")
+    names = [label.name for label in labels]
+    for key in given:
+        if key not in names:
+            raise SpecError(f"{path}.{kind}.{key}", f"subsystem '{spec.subsystem}' has no "
+                                                    f"{'state' if kind == 'x' else 'input'} '{key}' "
+                                                    f"(it has {', '.join(names)})")
+    return [given.get(name) for name in names]
+
+
+def _check_setpoints(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
+    if scn.setpoints and scn.options.method not in SETPOINT_METHODS:
+        raise SpecError("setpoints", f"the method '{scn.options.method}' does not track setpoints; use "
+                                     f"{' or '.join(SETPOINT_METHODS)} (options.method)")
+    for e, spec in enumerate(scn.setpoints):
+        path = f"setpoints[{e}]"
+        _check_name(spec.subsystem, index, f"{path}.subsystem")
+        if scn.dt is None and spec.at != int(spec.at):
+            raise SpecError(f"{path}.at", f"expected a whole step, got {spec.at:g} (the scenario has no dt, so 'at' "
+                                          "counts steps)")
+        sub = subs[index[spec.subsystem]]
+        for kind, set_spec, set_path in (("x", sub.state, "state"), ("u", sub.input, "input")):
+            values = setpoint_values(spec, sub, kind, path)
+            if not isinstance(set_spec, BoxSpec):
+                continue
+            for c, value in enumerate(values):
+                if value is not None and not set_spec.lower[c] <= value <= set_spec.upper[c]:
+                    where = f"{path}.{kind}[{c}]"
+                    name = (sub.states if kind == "x" else sub.inputs)
+                    label = f" ({name[c].label})" if name else ""
+                    raise SpecError(where, f"the target {value:g}{label} of subsystem '{spec.subsystem}' is outside "
+                                           f"{'X_i' if kind == 'x' else 'U_i'} [{set_spec.lower[c]:g}, "
+                                           f"{set_spec.upper[c]:g}] ({scn.subsystem_path(index[spec.subsystem])}."
+                                           f"{set_path})")

@@ -7,7 +7,15 @@ from dmpc.core.system import CoupledSystem
 from dmpc.offline import ControllerDesign, DesignError, design_from_json, design_gains
 from dmpc.offline.horizon import StartCheck, auto_beta0
 from dmpc.prepared import Prepared, design_digest
-from dmpc.scenario import Scenario, alpha0_vector, build_system, discrete_model, given_gains, revision_bounds
+from dmpc.scenario import (
+    Scenario,
+    alpha0_vector,
+    build_system,
+    discrete_model,
+    given_gains,
+    revision_bounds,
+    setpoint_entries,
+)
 from dmpc.setup.plant import disturbance_bounds, plant_setup
 from dmpc.setup.start import MethodStart
 
@@ -72,7 +80,8 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
     return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design, opts.method),
                     protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario),
                     name=scenario.name, coupling=opts.coupling, method=opts.method, plant=plant,
-                    model=_model_report(scenario))
+                    model=_model_report(scenario), setpoints=setpoint_entries(scenario),
+                    setpoint_margin=opts.setpoint_margin)
 
 
 def _model_report(scenario: Scenario) -> dict | None:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dmpc.offline.terminal_set import TerminalSet
 from dmpc.tracking.targets import Target, TargetSpace
 
 BISECTIONS = 40
@@ -45,45 +46,28 @@ class GovernorStep:
     theta: float
 
 
-def scaled_sigma(omega, row_norms: np.ndarray, alpha: np.ndarray, scale: float) -> float:
-    """sigma of the terminal set scaled by ``scale``: min_l (scale - Omega_l alpha) / ||Omega_l||_1.
-
-    Parameters
-    ----------
-    omega : ndarray or sparse matrix, shape (rows, n)
-    row_norms : ndarray, shape (rows,)
-    alpha : ndarray, shape (n,)
-    scale : float
-    """
-    return float(np.min((scale - omega @ alpha) / row_norms))
-
-
 class ReferenceGovernor:
     """Chooses each step's applied target (see the module's text).
 
     Parameters
     ----------
     space : TargetSpace
-    omega : ndarray or sparse matrix, shape (rows, n)
+    terminal : TerminalSet
         X^f = {x : Omega x <= 1} of the origin.
-    row_norms : ndarray, shape (rows,)
     closed_loop : ndarray or sparse matrix, shape (n, n)
         A + BK.
     """
 
-    def __init__(self, space: TargetSpace, omega, row_norms: np.ndarray, closed_loop) -> None:
+    def __init__(self, space: TargetSpace, terminal: TerminalSet, closed_loop) -> None:
         self.space = space
-        self.omega = omega
-        self.row_norms = row_norms
+        self.terminal = terminal
         self.closed_loop = closed_loop
 
     def slack(self, eta: np.ndarray, target: Target) -> float:
         """How far the candidates ending at eta (n,) are inside the conditions (a) and (b) for
         ``target``, in units of the terminal set: >= 0 when they stay feasible."""
         d = eta - target.x
-        inside = float(np.min((target.scale - self.omega @ d) / self.row_norms))
-        centre = scaled_sigma(self.omega, self.row_norms, self.closed_loop @ d, target.scale)
-        return min(inside, centre)
+        return min(self.terminal.sigma(d, target.scale), self.terminal.sigma(self.closed_loop @ d, target.scale))
 
     def step(self, eta: np.ndarray, applied: Target, requested: Target) -> GovernorStep:
         """The target for the next step, given the plans' terminal states eta (n,).

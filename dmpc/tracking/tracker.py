@@ -1,0 +1,114 @@
+"""The coordinator's side of setpoint tracking: which target each step applies.
+
+Per step k the schedule gives the request (the latest entry of each subsystem at or before k),
+the request its target (the reference, :class:`~dmpc.tracking.targets.TargetSpace`), and the
+reference governor the target applied at k, moved toward the reference no faster than the plans
+of step k - 1 allow (:class:`~dmpc.tracking.governor.ReferenceGovernor`). Step 0 applies the
+origin, the target the design and its start check were made for; the governor moves from there
+at the end of step 0.
+
+Pure: no bus, no clock. Targets of requests seen before are kept (a request costs one QP the
+first time it is seen, nothing after).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dmpc.core.system import CoupledSystem
+from dmpc.offline.terminal_set import TerminalSet
+from dmpc.tracking.governor import ReferenceGovernor
+from dmpc.tracking.schedule import Schedule, SetpointEntry
+from dmpc.tracking.targets import DEFAULT_MARGIN, Request, Target, TargetSpace
+
+
+@dataclass(frozen=True, eq=False)
+class TrackingStep:
+    """What one step tracked: asked for, its target, the target applied and how far it moved.
+
+    Attributes
+    ----------
+    request : Request
+        The requested components, (n,) and (m,), NaN where free.
+    reference : Target
+        The target of the request (the nearest admissible one when it is unreachable).
+    applied : Target
+        The target the step's controllers worked around.
+    theta : float
+        The fraction of the way from the previous step's applied target to the reference this
+        step's took (1: the reference is applied).
+    active : bool
+        False while nothing was ever requested (the origin, as without setpoints).
+    """
+
+    request: Request
+    reference: Target
+    applied: Target
+    theta: float
+    active: bool = True
+
+
+class Tracker:
+    """Targets of one run.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    terminal : TerminalSet
+        X^f of the design.
+    closed_loop : ndarray or sparse matrix, shape (n, n)
+        A + BK.
+    entries : iterable of SetpointEntry
+        The scenario's schedule.
+    margin : float
+        Targets keep this fraction of every bound free (:class:`TargetSpace`).
+    """
+
+    def __init__(self, system: CoupledSystem, terminal: TerminalSet, closed_loop,
+                 entries: tuple[SetpointEntry, ...] = (), margin: float = DEFAULT_MARGIN) -> None:
+        self.system = system
+        self.space = TargetSpace(system, margin)
+        self.governor = ReferenceGovernor(self.space, terminal, closed_loop)
+        self.schedule = Schedule(system, entries)
+        self.applied = Target.origin(system.n, system.m)
+        self.theta = 1.0
+        origin = Target.origin(system.n, system.m)
+        self.idle = TrackingStep(Request.free(system.n, system.m), origin, origin, 1.0, active=False)
+        """What a step tracks while nothing was ever requested (one object for every such step)."""
+        self._targets: dict[bytes, tuple[Request, Target]] = {}
+        self.unreachable: dict[bytes, tuple[int, Request, Target]] = {}  # first step each was asked at
+
+    @property
+    def active(self) -> bool:
+        """True once anything was requested: the records carry the targets from then on."""
+        return bool(self.schedule)
+
+    def add(self, entry: SetpointEntry) -> None:
+        """A request that arrived while the run goes on (its ``at`` is a step not yet decided)."""
+        self.schedule = self.schedule.with_entry(entry)
+
+    def reference(self, k: int) -> tuple[Request, Target]:
+        """The request that holds at step k and its target."""
+        request = self.schedule.request(k)
+        key = request.x.tobytes() + request.u.tobytes()
+        known = self._targets.get(key)
+        if known is None:
+            known = self._targets[key] = (request, self.space.target(request))
+            if not known[1].reachable:
+                self.unreachable.setdefault(key, (k, request, known[1]))
+        return known
+
+    def step(self, k: int) -> TrackingStep:
+        """What step k tracks (its applied target is the current one)."""
+        if k == 0:
+            self.theta = 1.0 if self.reference(0)[1].is_origin else 0.0
+        request, reference = self.reference(k)
+        return TrackingStep(request, reference, self.applied, self.theta)
+
+    def advance(self, k: int, eta: np.ndarray) -> Target:
+        """Decide the target of step ``k`` from the terminal states eta (n,) of step k - 1's plans."""
+        _, reference = self.reference(k)
+        decided = self.governor.step(eta, self.applied, reference)
+        self.applied, self.theta = decided.target, decided.theta
+        return self.applied
