@@ -25,6 +25,8 @@ from dmpc.bus.messages import (
     PlanMessage,
     Ready,
     Release,
+    Setpoint,
+    SetpointAnswer,
     State,
     Stop,
 )
@@ -77,6 +79,10 @@ def encode(msg: Message) -> bytes:
         body = _plan_body(msg)
     elif cls is Release:
         body = _release_body(msg)
+    elif cls is Setpoint:
+        body = _setpoint_body(msg)
+    elif cls is SetpointAnswer:
+        body = _answer_body(msg)
     else:
         body = {VERSION_FIELD: PROTOCOL_VERSION, "type": TYPE_NAMES[cls]}
         for name in _FIELDS[cls]:
@@ -108,6 +114,18 @@ def _release_body(m: Release) -> dict:
             "skipped": list(m.skipped),
             "provided": {name: [_wire_array(z), _wire_array(v)] for name, (z, v) in m.provided.items()},
             **({} if m.target is None else {"target": [_wire_array(m.target[0]), _wire_array(m.target[1])]})}
+
+
+def _setpoint_body(m: Setpoint) -> dict:
+    # float64 whatever the caller gave: an empty list would otherwise travel as an integer array
+    return {VERSION_FIELD: PROTOCOL_VERSION, "type": "setpoint", "run": m.run, "sender": m.sender, "id": _scalar(m.id),
+            "subsystem": m.subsystem, "x": _wire_array(np.asarray(m.x, dtype=float)),
+            "u": _wire_array(np.asarray(m.u, dtype=float))}
+
+
+def _answer_body(m: SetpointAnswer) -> dict:
+    return {VERSION_FIELD: PROTOCOL_VERSION, "type": "setpoint-answer", "run": m.run, "id": _scalar(m.id),
+            "subsystem": m.subsystem, "accepted": bool(m.accepted), "k": _scalar(m.k), "reason": m.reason}
 
 
 def _to_wire(value):
@@ -297,7 +315,27 @@ def _parse_state(b: dict) -> State:
                  x=_vectors(b["x"], "x", 4096))
 
 
+def _parse_setpoint(b: dict) -> Setpoint:
+    # NaN marks a free component; an infinite value is refused like everywhere else
+    return Setpoint(run=_str(b["run"], "run"), sender=_str(b["sender"], "sender"), id=_int(b, "id"),
+                    subsystem=_str(b["subsystem"], "subsystem"), x=_array(b["x"], "x", 1, allow_nan=True),
+                    u=_array(b["u"], "u", 1, allow_nan=True))
+
+
+def _parse_answer(b: dict) -> SetpointAnswer:
+    accepted, reason = b["accepted"], b["reason"]
+    if type(accepted) is not bool:
+        raise DecodeError(f"accepted: expected true or false, got {type(accepted).__name__}")
+    k = _int(b, "k", minimum=-1)
+    if accepted != (k >= 0):
+        raise DecodeError("k: expected a step >= 0 when accepted, -1 when refused")
+    if type(reason) is not str or len(reason) > MAX_REASON or accepted != (reason == ""):
+        raise DecodeError(f"reason: expected \"\" when accepted, else a string of 1 to {MAX_REASON} characters")
+    return SetpointAnswer(run=_str(b["run"], "run"), id=_int(b, "id"), subsystem=_str(b["subsystem"], "subsystem"),
+                          accepted=accepted, k=k, reason=reason)
+
+
 _PARSERS = {Release: _parse_release, PlanMessage: _parse_plan, Ready: _parse_ready, Stop: _parse_stop,
-            Inputs: _parse_inputs, State: _parse_state}
+            Inputs: _parse_inputs, State: _parse_state, Setpoint: _parse_setpoint, SetpointAnswer: _parse_answer}
 # every field present: the common case, checked with one comparison
 _WIRE_KEYS = {cls: frozenset(names) | {VERSION_FIELD, "type"} for cls, names in _FIELD_SETS.items()}

@@ -9,6 +9,8 @@
 ``dmpc/<run>/alive/<role>``     liveliness tokens (``coordinator``, ``plant``, ``sensor-<name>``,
                                 ``agent-<name>``)
 ``dmpc/<run>/telemetry/<kind>`` coordinator -> observers (``step``, ``meta``, ``end``; best effort)
+``dmpc/<run>/setpoint/<sender>``        a supervisory program -> coordinator (a setpoint request)
+``dmpc/<run>/setpoint-answer/<sender>`` coordinator -> that program (the answer)
 
 docs/protocol.md describes each of them.
 """
@@ -67,10 +69,24 @@ def telemetry_prefix(run: str) -> str:
     return f"{ROOT}/{run}/telemetry/*"
 
 
+def setpoint(run: str, sender: str) -> str:
+    return f"{ROOT}/{run}/setpoint/{sender}"
+
+
+def setpoint_prefix(run: str) -> str:
+    return f"{ROOT}/{run}/setpoint/*"
+
+
+def setpoint_answer(run: str, sender: str) -> str:
+    return f"{ROOT}/{run}/setpoint-answer/{sender}"
+
+
 COORDINATOR_ROLE = "coordinator"
 PLANT_ROLE = "plant"
 AGENT_PREFIX = "agent-"
 SENSOR_PREFIX = "sensor-"
+OPERATOR_ROLE = "operator"
+"""The certificate of a supervisory program that may change setpoints (it holds no token)."""
 
 
 def agent_role(agent: str) -> str:

@@ -8,6 +8,9 @@
 - ``Stop`` coordinator -> everyone: the run is over (finished, aborted, failed).
 - ``Inputs`` coordinator -> plant: the inputs u(k) to apply.
 - ``State`` plant (or one subsystem's sensor) -> coordinator: the measured state x(k).
+- ``Setpoint`` a supervisory program -> coordinator: a new setpoint of one subsystem while the run
+  goes on.
+- ``SetpointAnswer`` coordinator -> that program: accepted from step k, or refused and why.
 
 Agents are named by the scenario's subsystem names; the coordinator is ``"coordinator"``, a plant
 that reports the whole state ``"plant"``, and one that reports subsystem I alone ``"sensor-I"``.
@@ -172,10 +175,51 @@ class State:
     x: dict[str, np.ndarray]
 
 
-Message = Release | PlanMessage | Ready | Stop | Inputs | State
+@dataclass(frozen=True)
+class Setpoint:
+    """Request ``id`` of ``sender``: subsystem ``subsystem`` asks for ``x`` and ``u`` from the first
+    step whose target the coordinator has not decided yet.
+
+    Attributes
+    ----------
+    sender : str
+        Who asks (the key's last chunk); the answer goes to ``setpoint-answer/<sender>``.
+    id : int
+        Chosen by the sender, echoed in the answer.
+    subsystem : str
+        The subsystem's name.
+    x : ndarray, shape (n_i,) or (0,)
+        The requested states, NaN where free; empty: every state free.
+    u : ndarray, shape (m_i,) or (0,)
+        The requested inputs, the same way.
+    """
+
+    run: str
+    sender: str
+    id: int
+    subsystem: str
+    x: np.ndarray
+    u: np.ndarray
+
+
+@dataclass(frozen=True)
+class SetpointAnswer:
+    """The coordinator's answer to request ``id``: ``accepted`` from step ``k`` on, or refused
+    (``k`` = -1) for ``reason``."""
+
+    run: str
+    id: int
+    subsystem: str
+    accepted: bool
+    k: int
+    reason: str = ""
+
+
+Message = Release | PlanMessage | Ready | Stop | Inputs | State | Setpoint | SetpointAnswer
 
 MESSAGE_TYPES: dict[str, type] = {"release": Release, "plan": PlanMessage, "ready": Ready, "stop": Stop,
-                                  "inputs": Inputs, "state": State}
+                                  "inputs": Inputs, "state": State, "setpoint": Setpoint,
+                                  "setpoint-answer": SetpointAnswer}
 TYPE_NAMES: dict[type, str] = {v: k for k, v in MESSAGE_TYPES.items()}
 
 

@@ -15,16 +15,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
 
-from dmpc.bus.messages import PlanMessage, Release
+from dmpc.bus.messages import PlanMessage, Release, Setpoint, SetpointAnswer
 from dmpc.core.central_qp import CentralQP
 from dmpc.core.mpc_qp import plan_cost
 from dmpc.core.qp_status import SOLVED, QPStatus
-from dmpc.core.steps import NO_SEED, ProtocolOptions, StepRecord
+from dmpc.core.steps import NO_SEED, SETPOINT_METHODS, ProtocolOptions, StepRecord
 from dmpc.core.system import CoupledSystem, LinearSet, project_onto
 from dmpc.core.trajectories import Plan, candidate_plan, relative_to, shifted_input
 from dmpc.methods import DEFAULT_METHOD, terminal_policy
@@ -32,6 +32,7 @@ from dmpc.methods.policy import TerminalPolicy, TerminalState
 from dmpc.offline import ControllerDesign
 from dmpc.plant.dynamics import Plant
 from dmpc.security.rejects import MAX_MAGNITUDE, STALE, clearly_in_range, magnitude
+from dmpc.tracking.schedule import SetpointEntry
 from dmpc.tracking.targets import Target
 from dmpc.tracking.tracker import Tracker, TrackingStep
 
@@ -360,6 +361,69 @@ class Coordinator:
     def _add_note(self, text: str) -> None:
         self._note = f"{self._note}; {text}" if self._note else text
 
+    # ------------------------------------------------------------------ setpoints
+    def on_setpoint(self, msg: Setpoint) -> SetpointAnswer:
+        """A setpoint request of a supervisory program: take it from the first step whose target
+        is not decided yet, or refuse it and say why.
+
+        Accepted, it joins the tracker's schedule from that step (NaN where free; an empty x or u
+        leaves every component free) and the record of the step it arrived in notes it. Refused,
+        nothing changes.
+
+        Returns
+        -------
+        SetpointAnswer
+            Accepted with ``k`` the first step the request holds at, or refused (``k`` = -1) with
+            the reason.
+        """
+        try:
+            problem = self._setpoint_problem(msg)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the run
+            problem = f"malformed: {type(exc).__name__}"
+        if problem is not None:
+            return SetpointAnswer(self.run_id, msg.id, msg.subsystem, False, -1, problem)
+        assert self.tracker is not None  # checked by _setpoint_problem
+        i, at = self.index[msg.subsystem], self._first_undecided()
+        sub = self.system.subsystems[i]
+        x, u = _request_part(msg.x, sub.n), _request_part(msg.u, sub.m)
+        self.tracker.add(SetpointEntry(at=at, index=i, x=x, u=u, source=msg.sender))
+        self._note_setpoint(f"setpoint from {msg.sender} (id {msg.id}): subsystem {msg.subsystem} "
+                            f"{_components_text('x', x)}, {_components_text('u', u)} from step {at}")
+        return SetpointAnswer(self.run_id, msg.id, msg.subsystem, True, at)
+
+    def _first_undecided(self) -> int:
+        """The first step whose target is not decided yet: k + 1, or k + 2 while step k is
+        decided and its next state awaited from a plant outside."""
+        return self.k + (2 if self._pending is not None else 1)
+
+    def _setpoint_problem(self, msg: Setpoint) -> str | None:
+        """Why the request cannot be taken, or None."""
+        if msg.run != self.run_id:
+            return f"wrong run id '{msg.run}' (this run is '{self.run_id}')"
+        if self.tracker is None:
+            return f"this run's method does not track setpoints (only {' and '.join(SETPOINT_METHODS)} do)"
+        if self.finished:
+            return "the run is finished"
+        at = self._first_undecided()
+        if at >= self.options.steps:
+            return f"too late: the run's last step ({self.options.steps - 1}) is already decided"
+        i = self.index.get(msg.subsystem)
+        if i is None:
+            shown = ", ".join(self.names[:8]) + (", ..." if len(self.names) > 8 else "")
+            return f"unknown subsystem '{msg.subsystem}' (known: {shown})"
+        sub = self.system.subsystems[i]
+        return (_component_problem(np.asarray(msg.x, dtype=float), "x", sub.n, sub.state_set, msg.subsystem)
+                or _component_problem(np.asarray(msg.u, dtype=float), "u", sub.m, sub.input_set, msg.subsystem))
+
+    def _note_setpoint(self, text: str) -> None:
+        """Note ``text`` in the record of the step the request arrived in (the decided step while
+        its state is awaited)."""
+        if self._pending is None:
+            self._add_note(text)
+        else:
+            note = self._pending.note
+            self._pending = replace(self._pending, note=f"{note}; {text}" if note else text)
+
     # ------------------------------------------------------------------ checks
     def check(self, msg: PlanMessage) -> str | None:
         """None if the plan belongs to the open round and has the right shapes; else the reason."""
@@ -596,6 +660,37 @@ class Coordinator:
         sub = self.system.subsystems[i]
         z, v = candidate_plan(plan, self.k, None, self.N, self._gamma[i], self._K[i])
         return plan_cost(z, v, sub.Q, sub.R, self.design.gains.P[i])
+
+
+def _request_part(values: np.ndarray, size: int) -> np.ndarray:
+    """A subsystem's requested components (size,), NaN where free: ``values`` or, empty, all free."""
+    values = np.asarray(values, dtype=float)
+    return np.full(size, np.nan) if values.size == 0 else values.copy()
+
+
+def _component_problem(values: np.ndarray, kind: str, size: int, bounds: LinearSet | None, name: str) -> str | None:
+    """Why the requested states (``kind`` x) or inputs (u) of subsystem ``name`` cannot be taken, or
+    None: ``size`` entries or none, NaN or finite, inside a box X_i or U_i (a polytope's are left to
+    the target, which keeps inside it)."""
+    if values.ndim != 1 or values.size not in (0, size):
+        what = f"n_i = {size} states" if kind == "x" else f"m_i = {size} inputs"
+        return f"{kind}: expected {size} entries ({what} of subsystem '{name}') or none, got {values.size}"
+    for c, value in enumerate(values):
+        if math.isnan(value):
+            continue
+        if not abs(value) <= MAX_MAGNITUDE:
+            return f"{kind}[{c}]: expected a finite number up to {MAX_MAGNITUDE:g} in size, or NaN for a free one"
+        if bounds is not None and bounds.is_box and not bounds.lower[c] <= value <= bounds.upper[c]:
+            return (f"{kind}[{c}]: the target {value:g} of subsystem '{name}' is outside "
+                    f"{'X_i' if kind == 'x' else 'U_i'} [{bounds.lower[c]:g}, {bounds.upper[c]:g}]")
+    return None
+
+
+def _components_text(kind: str, values: np.ndarray) -> str:
+    """``x = [1, free]``, or ``x free`` when nothing is requested."""
+    if np.isnan(values).all():
+        return f"{kind} free"
+    return f"{kind} = [{', '.join('free' if math.isnan(v) else f'{v:g}' for v in values)}]"
 
 
 def _seed_failure(status: QPStatus) -> str:

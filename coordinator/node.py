@@ -17,7 +17,7 @@ from typing import Protocol
 from dmpc.bus import keys
 from dmpc.bus.codec import MAX_REASON, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus
-from dmpc.bus.messages import PROTOCOL_VERSION, PlanMessage, Ready, Stop, design_claim
+from dmpc.bus.messages import PROTOCOL_VERSION, PlanMessage, Ready, Setpoint, SetpointAnswer, Stop, design_claim
 from dmpc.coordinator.barrier import (
     ApplyInputs,
     Coordinator,
@@ -127,6 +127,7 @@ class CoordinatorNode:
         self._stop_payload: bytes | None = None
         bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan, hot=True)
         bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
+        bus.subscribe(keys.setpoint_prefix(self.run_id), self._on_setpoint)
         bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
 
     def announce(self) -> None:
@@ -222,6 +223,32 @@ class CoordinatorNode:
                 self._reject(name, problem)
             return
         self._carry_out(actions)
+
+    def _on_setpoint(self, key: str, payload: bytes) -> None:
+        """A supervisory program's setpoint request: answered on ``setpoint-answer/<sender>``,
+        unless it does not decode or its sender is not its key's (then counted as dropped)."""
+        sender = keys.last_chunk(key)
+        msg = self._decoded(sender, payload)
+        if msg is None:
+            return
+        if not isinstance(msg, Setpoint) or msg.sender != sender:
+            self._reject(sender, "not a setpoint request from its key's sender")
+            return
+        try:
+            keys.check_chunk(sender, "sender")
+        except ValueError as exc:
+            self._reject(sender, str(exc))
+            return
+        answer = self.coordinator.on_setpoint(msg)
+        self._log_setpoint(msg, answer)
+        self.bus.publish(keys.setpoint_answer(self.run_id, sender), encode(answer))
+
+    def _log_setpoint(self, msg: Setpoint, answer: SetpointAnswer) -> None:
+        who = f"setpoint request {msg.id} from {_shown(msg.sender)} for subsystem {_shown(msg.subsystem)}"
+        if answer.accepted:
+            log.warning("coordinator: %s accepted from step %d", who, answer.k)
+        else:
+            log.warning("coordinator: %s refused: %s", who, _shown(answer.reason))
 
     @staticmethod
     def _log_refusal(refusal: PlanRefused) -> None:

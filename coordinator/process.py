@@ -47,8 +47,8 @@ def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callabl
     tracker = None
     if prepared.tracks:
         assert isinstance(policy, BoxPolicy)
-        tracker = Tracker(prepared.system, prepared.design.terminal, policy.closed_loop, prepared.setpoints,
-                          prepared.setpoint_margin)
+        tracker = Tracker(prepared.system, prepared.design.terminal, policy.closed_loop,
+                          prepared.design.gains.K_global(), prepared.setpoints, prepared.setpoint_margin)
     coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id, policy=policy,
                               clock=bus.now, tracker=tracker)
     return CoordinatorNode(bus, coordinator, prepared.digest, on_step, mode=prepared.mode, dt=prepared.dt,

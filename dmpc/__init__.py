@@ -8,6 +8,7 @@ From Python::
     design = dmpc.design(scenario)              # gains, X^f, sigma, horizon, checks
     result = dmpc.simulate(scenario)            # in this process
     result = dmpc.run(scenario)                 # plant + one process per agent over Zenoh
+    dmpc.setpoint("tcp/127.0.0.1:7447", run_id, "1", x=[1.0, None])  # a running run's setpoint
     result.x["1"], result.u["1"], result.t, result.verdict
     figures = result.plot()
     again = dmpc.load_run("runs/paper-...")
@@ -56,16 +57,19 @@ from typing import TYPE_CHECKING  # noqa: E402
 if TYPE_CHECKING:  # the names loaded lazily below, for type checkers and editors
     from dmpc.api import RunError, ScenarioLike, load_run, load_scenario, run, simulate
     from dmpc.api.result import Result
+    from dmpc.api.setpoints import LiveRun, SetpointError, SetpointRefused, SetpointUnanswered, setpoint
     from dmpc.core.errors import DesignError, DmpcError
     from dmpc.offline.record import Design
     from dmpc.plant.models import PlantModelError
     from dmpc.scenario import Scenario, ScenarioError
 
-__all__ = ["Design", "DesignError", "DmpcError", "PlantModelError", "Result", "RunError", "Scenario", "ScenarioError",
-           "design", "load_run", "load_scenario", "run", "simulate"]
+__all__ = ["Design", "DesignError", "DmpcError", "LiveRun", "PlantModelError", "Result", "RunError", "Scenario",
+           "ScenarioError", "SetpointError", "SetpointRefused", "SetpointUnanswered", "design", "load_run",
+           "load_scenario", "run", "setpoint", "simulate"]
 
 _LAZY = {"load_scenario": "dmpc.api", "simulate": "dmpc.api", "run": "dmpc.api", "load_run": "dmpc.api",
-         "RunError": "dmpc.api", "Design": "dmpc.offline.record", "Result": "dmpc.api.result",
+         "RunError": "dmpc.api", "setpoint": "dmpc.api", "LiveRun": "dmpc.api", "SetpointError": "dmpc.api",
+         "SetpointRefused": "dmpc.api", "SetpointUnanswered": "dmpc.api", "Design": "dmpc.offline.record", "Result": "dmpc.api.result",
          "DmpcError": "dmpc.core.errors", "DesignError": "dmpc.core.errors",
          "PlantModelError": "dmpc.plant.models", "Scenario": "dmpc.scenario", "ScenarioError": "dmpc.scenario"}
 

@@ -172,3 +172,13 @@ def test_regenerating_replaces_the_figures_and_keeps_the_dated_history_at_the_en
     fresh = tmp_path / "new.md"
     write_report(_full_results(), fresh, "dmpc bench")
     assert HISTORY_HEADING not in fresh.read_text()
+
+
+def test_what_a_setpoint_costs_is_a_table_of_its_own():
+    row = {"M": 64, "n": 128, "omega_rows": 384, "first_target_ms": 9.0, "target_ms": 7.03, "terminal_set_ms": 0.033,
+           "governor_ms": 2.5, "governor_theta": 0.18, "plain_ms_p50": 20.5, "tracked_ms_p50": 21.7,
+           "change_step_ms": 22.9, "around_target_ms_p50": 25.2}
+    text = markdown({**_results(), "setpoints": [row]}, "dmpc bench")
+    assert "## What a setpoint costs" in text
+    assert "| 64 | 128 | 384 | 9.0 | 7.0 | 0.03 | 2.5 | 20.50 | 21.70 | 22.90 | 25.20 |" in text
+    assert "## What a setpoint costs" not in markdown(_results(), "dmpc bench")  # older results: no table

@@ -122,3 +122,62 @@ def test_schema_command_prints_json_schema(monkeypatch, capsys):
     assert code == 0
     schema = json.loads(out)
     assert "properties" in schema and "subsystems" in schema["properties"]
+
+
+SETPOINT = ["setpoint", "--connect", "tcp/127.0.0.1:7447", "--run-id", "r", "--subsystem", "1"]
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["setpoint", "--run-id", "r", "--subsystem", "1", "--x", "1,null"], "--connect: the coordinator's endpoint"),
+    (["setpoint", "--connect", "tcp/127.0.0.1:7447", "--subsystem", "1", "--x", "1"], "--run-id: the id of the run"),
+    (["setpoint", "--connect", "tcp/127.0.0.1:7447", "--run-id", "r", "--x", "1"], "--subsystem: the name"),
+    (SETPOINT, "give --x or --u"),
+    (SETPOINT + ["--x", "1,warm"], "--x: expected a number or null (free), got 'warm'"),
+    (SETPOINT + ["--x", "1,inf"], "--x[1]: expected a finite number"),
+    (SETPOINT + ["--x", "1", "--x", "2"], "--x: by position, give one --x with every value"),
+    (SETPOINT + ["--x", "Ta=1,2"], "--x: give every value by position (1.0,null) or every one by name"),
+    (SETPOINT + ["--x", "Ta=1", "--x", "Ta=2"], "--x: 'Ta' is given twice"),
+    (SETPOINT + ["--u", "heat=1"], "--u: values by name need --scenario FILE"),
+    (SETPOINT + ["--x", "Ta=1", "--scenario", "scenarios/paper.yaml"],
+     "--x: names need the subsystem's 'states' (subsystem '1' names none)"),
+    (SETPOINT + ["--x", "1", "--scenario", "scenarios/paper.yaml"],
+     "--x: expected 2 entries (n_i = 2 states of subsystem '1'), got 1"),
+    (["setpoint", "--connect", "tcp/127.0.0.1:7447", "--run-id", "r", "--subsystem", "9", "--x", "1",
+      "--scenario", "scenarios/paper.yaml"], "no subsystem '9' in scenario 'paper' (subsystems: 1, 2, 3, 4)"),
+    (SETPOINT + ["--x", "1,null", "--connect", "tcp/nowhere"], "bad Zenoh endpoint"),
+    (SETPOINT + ["--x", "1,null", "--run-id", "a/b"], "run id 'a/b' must be"),
+    (SETPOINT + ["--x", "1,null", "--name", "two words"], "sender name 'two words' must be"),
+    (SETPOINT + ["--x", "1,null", "--tls", "no-such-dir"], "--tls no-such-dir: no such directory"),
+])
+def test_setpoint_flags_that_cannot_work_exit_2_with_one_line(monkeypatch, capsys, args, expected):
+    code, _, err = call(monkeypatch, capsys, *args)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    assert expected in lines[0]
+
+
+@pytest.mark.parametrize("request_args", [
+    ["--subsystem", "1", "--x", "1,null"],
+    ["--subsystem", "room3", "--x", "Ta=1.5", "--u", "P=null", "--scenario", "scenarios/rooms.yaml"],
+])
+def test_setpoint_without_a_coordinator_says_so_and_exits_1(monkeypatch, capsys, request_args):
+    """A Zenoh peer listens, but no coordinator of the run subscribes: nothing answers."""
+    import zenoh
+
+    from dmpc.bus.session import free_tcp_port, session_config
+
+    port = free_tcp_port()
+    with zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{port}"])):
+        code, out, err = call(monkeypatch, capsys, "setpoint", "--connect", f"tcp/127.0.0.1:{port}", "--run-id",
+                              "nobody", *request_args, "--timeout", "0.5")
+    assert code == 1 and out == ""
+    assert err.strip() == "no answer from the coordinator of run nobody within 0.5 s"
+
+
+def test_setpoint_to_an_endpoint_where_nothing_listens_exits_1(monkeypatch, capsys):
+    from dmpc.bus.session import free_tcp_port
+
+    code, _, err = call(monkeypatch, capsys, *SETPOINT[:2], f"tcp/127.0.0.1:{free_tcp_port()}", *SETPOINT[3:],
+                        "--x", "1,null", "--timeout", "0.5")
+    assert code == 1 and err.startswith("error: cannot open a Zenoh client session") and "Traceback" not in err

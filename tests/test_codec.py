@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from dmpc.bus.codec import DecodeError, decode, encode
-from dmpc.bus.messages import PlanMessage, Ready, Release, Stop, messages_equal
+from dmpc.bus.messages import PlanMessage, Ready, Release, Setpoint, SetpointAnswer, Stop, messages_equal
 
 names = st.text(alphabet="abcdefghijklmnopqrstuvwxyz0123456789_-", min_size=1, max_size=12)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
@@ -49,8 +49,25 @@ def plans(draw):
                        sent_at=draw(finite))
 
 
+@st.composite
+def setpoints(draw):
+    """A request with NaN (free) components mixed in, or empty x or u (all free)."""
+    component = st.one_of(finite, st.just(math.nan))
+    x, u = (draw(st.one_of(st.just(np.zeros(0)), arrays(np.float64, (draw(st.integers(1, 6)),), elements=component)))
+            for _ in range(2))
+    return Setpoint(run=draw(names), sender=draw(names), id=draw(counts), subsystem=draw(names), x=x, u=u)
+
+
+@st.composite
+def answers(draw):
+    accepted = draw(st.booleans())
+    return SetpointAnswer(run=draw(names), id=draw(counts), subsystem=draw(names), accepted=accepted,
+                          k=draw(counts) if accepted else -1, reason="" if accepted else draw(st.text(min_size=1,
+                                                                                                      max_size=50)))
+
+
 messages = st.one_of(
-    releases(), plans(),
+    releases(), plans(), setpoints(), answers(),
     st.builds(Ready, run=names, sender=names, design_digest=names, pid=counts,
               scenario=st.one_of(st.just(""), names), horizon=counts),
     st.builds(Stop, run=names, k=counts, reason=st.text(max_size=50), sender=names),
@@ -153,6 +170,71 @@ def test_specific_defects_named(mutate, match):
     mutate(body)
     with pytest.raises(DecodeError, match=match):
         decode(msgpack.packb(body, use_bin_type=True))
+
+
+def setpoint_body(**changes) -> dict:
+    msg = Setpoint(run="r", sender="cli", id=3, subsystem="1", x=np.array([1.0, math.nan]), u=np.zeros(0))
+    body = msgpack.unpackb(encode(msg), raw=False)
+    body.update(changes)
+    return body
+
+
+def answer_body(**changes) -> dict:
+    body = msgpack.unpackb(encode(SetpointAnswer(run="r", id=3, subsystem="1", accepted=True, k=7)), raw=False)
+    body.update(changes)
+    return body
+
+
+def test_a_setpoint_with_free_components_and_an_empty_u_round_trips():
+    msg = decode(msgpack.packb(setpoint_body(), use_bin_type=True))
+    assert isinstance(msg, Setpoint) and msg.x[0] == 1.0 and math.isnan(msg.x[1]) and msg.u.shape == (0,)
+    assert msg.x.dtype == np.float64 and msg.u.dtype == np.float64
+    # an empty list given by the caller still travels as float64
+    assert decode(encode(Setpoint("r", "cli", 3, "1", np.array([]), np.array([], dtype=int)))).u.dtype == np.float64
+
+
+@pytest.mark.parametrize("body, match", [
+    (setpoint_body(x={"dtype": "<f8", "shape": [2], "data": np.array([1.0, math.inf]).tobytes()}), "x: non-finite"),
+    (setpoint_body(u={"dtype": "<f8", "shape": [1], "data": np.array([-math.inf]).tobytes()}), "u: non-finite"),
+    (setpoint_body(x={"dtype": "<i8", "shape": [1], "data": np.array([1]).tobytes()}), "x: dtype"),
+    (setpoint_body(x={"dtype": "<f8", "shape": [1, 1], "data": np.zeros(1).tobytes()}), "x: shape"),
+    (setpoint_body(x=[1.0, None]), "x: expected an array map"),
+    (setpoint_body(id=-1), "id"),
+    (setpoint_body(id="3"), "id"),
+    (setpoint_body(subsystem=""), "subsystem"),
+    (setpoint_body(sender=7), "sender"),
+    (setpoint_body(extra=1), "unexpected"),
+    ({k: v for k, v in setpoint_body().items() if k != "u"}, "missing"),
+    (answer_body(accepted=1), "accepted: expected true or false"),
+    (answer_body(k=-1), "k: expected a step >= 0 when accepted"),
+    (answer_body(accepted=False, reason="no"), "k: expected a step >= 0 when accepted, -1 when refused"),
+    (answer_body(accepted=False, k=-1, reason=""), "reason"),
+    (answer_body(reason="but"), "reason"),
+    (answer_body(k=-2), "k: expected an integer >= -1"),
+    (answer_body(reason="x" * 1001), "reason"),
+])
+def test_setpoint_defects_named(body, match):
+    with pytest.raises(DecodeError, match=match):
+        decode(msgpack.packb(body, use_bin_type=True))
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.one_of(setpoints(), answers()), st.data())
+def test_mutated_setpoint_fields_only_raise_decode_error(msg, data):
+    body = msgpack.unpackb(encode(msg), raw=False)
+    key = data.draw(st.sampled_from(sorted(body)))
+    body[key] = data.draw(st.one_of(st.none(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=5),
+                                    st.binary(max_size=8), st.booleans(), st.lists(st.floats(), max_size=3)))
+    try:
+        decoded = decode(msgpack.packb(body, use_bin_type=True))
+    except DecodeError:
+        return
+    # whatever survived is a well-formed message of the same type
+    assert type(decoded) is type(msg)
+    if isinstance(decoded, Setpoint):
+        assert decoded.x.ndim == decoded.u.ndim == 1 and not np.isinf(decoded.x).any() and not np.isinf(decoded.u).any()
+    else:
+        assert decoded.accepted == (decoded.k >= 0) and decoded.accepted == (decoded.reason == "")
 
 
 def test_ready_without_scenario_and_horizon_decodes_with_defaults():

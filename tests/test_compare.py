@@ -195,3 +195,33 @@ def test_run_centralized_runs_in_this_process(tmp_path, monkeypatch, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == "centralized" and summary["steps"] == 3 and summary["feasible"]
     assert not (out / "processes.json").exists()
+
+
+# --------------------------------------------------------------------------- compare with setpoints
+SETPOINT = ["--set", 'setpoints=[{at: 0, subsystem: "1", x: [1.0, null]}]']
+
+
+def test_compare_with_setpoints_runs_the_methods_that_track_them(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "cmp"
+    code, stdout, _ = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(out), "--steps", "30",
+                           *SETPOINT, "--quiet")
+    assert code == 0
+    data = json.loads((out / "comparison.json").read_text())
+    assert list(data["methods"]) == ["tv-box", "tv-box-opt"]  # the others would drive the states to the origin
+    entry = data["methods"]["tv-box"]
+    target = np.load(out / "tv-box" / "trajectory.npz")["target"][-1]
+    assert target[0] == pytest.approx(1.0) and entry["steps_to_1e-3"] is not None  # measured from the target
+    assert "||x(k) - x_s||_inf" in stdout
+
+
+def test_compare_refuses_a_method_that_does_not_track_the_scenarios_setpoints(tmp_path, monkeypatch, capsys):
+    code, stdout, err = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(tmp_path / "cmp"),
+                             "--methods", "tv-box", "ellipsoid", *SETPOINT, "--quiet")
+    assert code == 2 and stdout == ""
+    assert "--methods: the method 'ellipsoid' does not track setpoints" in one_error_line(err)
+    assert not (tmp_path / "cmp").exists()
+
+
+def test_roa_refuses_a_scenario_with_setpoints(tmp_path, monkeypatch, capsys):
+    code, _, err = call(monkeypatch, capsys, "roa", str(PAPER), *SETPOINT, "--out", str(tmp_path / "roa"), "--quiet")
+    assert code == 2 and "dmpc roa measures where regulation to the origin succeeds" in one_error_line(err)

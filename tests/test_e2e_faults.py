@@ -132,7 +132,7 @@ def test_loss_in_realtime_falls_back_and_converges(tmp_path):
 # the first release, as often as the processes take to start, and each copy draws from its
 # link's stream (docs/faults.md says so); a plan lost between agents shows in no record, and
 # makes its receiver wait half the deadline, a wait that a loaded machine can stretch.
-SAME_STREAMS = ["--set", "seed=3", "--set", "options.deadline=1",
+SAME_STREAMS = ["--set", "seed=3", "--set", "steps=15", "--set", "options.deadline=1",
                 "--set", "faults.links=[" + ", ".join(f'{{source: plant, target: "{name}", loss: 0.2}}'
                                                       for name in "1234") + "]"]
 
@@ -153,7 +153,7 @@ def test_simulate_and_run_drop_the_same_messages(tmp_path):
     assert res.returncode == 0, res.stderr + res.stdout
     simulated = assert_fallbacks_recorded(tmp_path / "sim")
     run = assert_fallbacks_recorded(tmp_path / "run")
-    assert simulated["steps"] == run["steps"] == 30
+    assert simulated["steps"] == run["steps"] == 15
     assert 0 < simulated["fallbacks"] == run["fallbacks"], (simulated["fallbacks"], run["fallbacks"])
     assert run["fallback_steps"] == simulated["fallback_steps"]
     solves = {name: agent["solves"] for name, agent in run["agents"].items()}

@@ -21,8 +21,9 @@ def test_the_quickstart_notebook_executes_and_draws_its_figures():
     assert not [out for out in outputs if out.output_type == "error"]
     text = "".join(out.get("text", "") for out in outputs if out.output_type == "stream")
     assert "verdict ok" in text and "p [m]" in text and "dt = 0.1 s, local-zoh" in text
+    assert "cart 1 p [m]: asked 1, reached 1.0000" in text and "cart 3 p [m]: asked -1, reached -0.99" in text
     images = [out for out in outputs if "image/png" in out.get("data", {})]
-    assert len(images) == 3  # states, inputs, cost
+    assert len(images) == 6  # states, inputs, cost: of the carts, then of the carts with setpoints
 
 
 def _script(name: str, *args: str) -> str:
@@ -54,3 +55,18 @@ def test_disturbance_script():
 def test_own_plant_script():
     out = _script("own_plant.py", "--steps", "20")
     assert "own plant:    verdict ok" in out and "'function': 'plants:carts_stiffening_springs'" in out
+
+
+def test_rooms_setpoints_script(tmp_path):
+    out = _script("rooms_setpoints.py", "--out", str(tmp_path))
+    assert "verdict ok, 288 steps of 300 s, 0 fallbacks" in out
+    rows = [line.split() for line in out.splitlines() if line.startswith("room") and line.endswith(" K")]
+    assert [(r[0], r[1], r[2], r[3]) for r in rows] == [
+        ("room1", "22:00", "03:00", "19.5"), ("room1", "03:00", "09:00", "20.5"), ("room1", "09:00", "22:00", "20.0"),
+        ("room2", "22:00", "03:00", "19.5"), ("room2", "03:00", "09:00", "20.5"), ("room2", "09:00", "22:00", "20.0"),
+        ("room3", "22:00", "03:00", "20.5"), ("room3", "03:00", "22:00", "21.0"),
+        ("room4", "22:00", "03:00", "20.5"), ("room4", "03:00", "22:00", "21.0"),
+        ("room5", "22:00", "02:00", "19.5"), ("room5", "02:00", "09:00", "21.5"), ("room5", "09:00", "22:00", "20.5")]
+    assert all(abs(float(r[-2])) <= 0.3 for r in rows)  # each room near its setpoint when the next takes over
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == ["rooms_setpoints_cost.png", "rooms_setpoints_inputs.png",
+                                                               "rooms_setpoints_states.png"]

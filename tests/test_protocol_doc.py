@@ -18,7 +18,18 @@ import numpy as np
 import pytest
 
 from dmpc.bus import codec, keys
-from dmpc.bus.messages import MESSAGE_TYPES, PROTOCOL_VERSION, Inputs, PlanMessage, Ready, Release, State, Stop
+from dmpc.bus.messages import (
+    MESSAGE_TYPES,
+    PROTOCOL_VERSION,
+    Inputs,
+    PlanMessage,
+    Ready,
+    Release,
+    Setpoint,
+    SetpointAnswer,
+    State,
+    Stop,
+)
 from dmpc.security.acl import access_control
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
@@ -133,13 +144,15 @@ def test_the_key_table_names_the_message_of_each_key(doc):
     assert carried[keys.control("<run>")] == "stop"
     assert carried[keys.inputs("<run>")] == "inputs"
     assert carried[keys.state("<run>", "<source>")] == "state"
+    assert carried[keys.setpoint("<run>", "<sender>")] == "setpoint"
+    assert carried[keys.setpoint_answer("<run>", "<sender>")] == "setpoint-answer"
 
 
 def test_the_role_table_has_every_role_name(doc):
     rows = one_table("Roles", doc)
     roles = {plain(row[0]) for row in rows[1:]}
     assert {keys.COORDINATOR_ROLE, keys.PLANT_ROLE, keys.sensor_role("<name>"), keys.agent_role("<name>"),
-            "observer", "router"} == roles
+            "observer", keys.OPERATOR_ROLE, "router"} == roles
     tokens = {plain(row[0]): plain(row[-1]) for row in rows[1:]}
     for role in (keys.COORDINATOR_ROLE, keys.PLANT_ROLE, keys.sensor_role("<name>"), keys.agent_role("<name>")):
         assert "dmpc/<run>/" + tokens[role] == keys.alive("<run>", role)
@@ -184,6 +197,9 @@ def examples() -> dict[str, object]:
         "stop": Stop(run="r", k=3, reason="finished"),
         "inputs": Inputs(run="r", k=3, u={"a": np.zeros(1), "b": np.ones(1)}),
         "state": State(run="r", k=4, sender="plant", x={"a": np.zeros(2), "b": np.ones(2)}),
+        "setpoint": Setpoint(run="r", sender="scada", id=17, subsystem="a", x=np.array([1.0, np.nan]),
+                             u=np.zeros(0)),
+        "setpoint-answer": SetpointAnswer(run="r", id=17, subsystem="a", accepted=True, k=23),
     }
 
 
@@ -234,6 +250,19 @@ def test_the_example_state_on_the_page_decodes(doc):
     msg = codec.decode(msgpack.packb(body, use_bin_type=True))
     assert isinstance(msg, State) and msg.sender == "sensor-2" and list(msg.x) == ["2"]
     assert msg.x["2"].tolist() == [1.5, -0.25]
+
+
+def python_blocks(section: str) -> list[object]:
+    """The msgpack bodies written as Python literals in ``section``'s plain code blocks."""
+    return [ast.literal_eval(block) for block in re.findall(r"```\n(\{.*?\})\n```", section, flags=re.S)]
+
+
+def test_the_setpoint_examples_on_the_page_decode(doc):
+    request, answer = (codec.decode(msgpack.packb(body, use_bin_type=True))
+                       for body in python_blocks(doc["Setpoints while a run goes on"]))
+    assert isinstance(request, Setpoint) and request.sender == "scada" and request.subsystem == "1"
+    assert request.x[0] == 1.0 and np.isnan(request.x[1]) and request.u.shape == (0,)
+    assert isinstance(answer, SetpointAnswer) and answer.accepted and answer.id == request.id and answer.k == 23
 
 
 def test_the_limits_are_the_codecs(doc):

@@ -317,3 +317,136 @@ def test_report_on_the_output_of_dmpc_compare(tmp_path, monkeypatch, capsys):
     assert code == 0, err
     assert "not drawn" not in stdout
     assert_five_figures(out / "figures")
+
+
+# ----------------------------------------------------------------------------- setpoints
+SETPOINTS = [{"at": 0, "subsystem": "1", "x": [1.0, None]}, {"at": 12, "subsystem": "1", "x": [-0.5, None]},
+             {"at": 20, "subsystem": "3", "u": [0.2]}]
+"""x_11 = 1 from k = 0, -0.5 from k = 12, and u_3 = 0.2 from k = 20: requests on a state and an input."""
+
+
+@pytest.fixture(scope="module")
+def setpoint_run(tmp_path_factory) -> Path:
+    import dmpc
+
+    out = tmp_path_factory.mktemp("setpoints") / "run"
+    result = dmpc.simulate(dmpc.load_scenario("scenarios/paper.yaml", steps=30, setpoints=SETPOINTS), out=out)
+    assert result.verdict == "ok", result.summary["failures"]
+    return out
+
+
+def labelled(ax, label: str) -> list:
+    return [line for line in ax.get_lines() if line.get_label() == label]
+
+
+def held(values: np.ndarray) -> np.ndarray:
+    """A per-step series (K,) as a steps-post line draws it on the times 0 .. K: its last value repeated."""
+    return np.append(values, values[-1])
+
+
+def test_a_run_with_setpoints_draws_the_target_dashed_and_the_setpoint_dotted(setpoint_run):
+    from dmpc.plots.targets import SETPOINT_LABEL, TARGET_LABEL
+
+    run = report.load_run(setpoint_run)
+    npz = np.load(setpoint_run / "trajectory.npz")
+    plt = report._pyplot()
+    states = report._signal_figure(plt, [(run, run.method)], "x", "states")
+    inputs = report._signal_figure(plt, [(run, run.method)], "u", "inputs")
+    try:
+        for column, ax in enumerate(states.axes):  # 4 subsystems of 2 states: panel = global state column
+            (target,) = labelled(ax, TARGET_LABEL)
+            assert target.get_drawstyle() == "steps-post" and target.get_linestyle() == "--"
+            np.testing.assert_array_equal(target.get_xdata(), np.arange(31))
+            np.testing.assert_array_equal(target.get_ydata(), held(npz["target"][:, column]))
+            asked = labelled(ax, SETPOINT_LABEL)
+            assert len(asked) == (1 if column == 0 else 0)  # x_11 requested, every other state free
+        (asked,) = labelled(states.axes[0], SETPOINT_LABEL)
+        assert asked.get_drawstyle() == "steps-post" and asked.get_linestyle() == ":"
+        np.testing.assert_array_equal(asked.get_ydata(), held(npz["setpoint"][:, 0]))
+        assert asked.get_ydata()[11] == 1.0 and asked.get_ydata()[12] == -0.5
+        for i, ax in enumerate(inputs.axes):
+            np.testing.assert_array_equal(labelled(ax, TARGET_LABEL)[0].get_ydata(), held(npz["target_u"][:, i]))
+            assert len(labelled(ax, SETPOINT_LABEL)) == (1 if i == 2 else 0)
+        u3 = labelled(inputs.axes[2], SETPOINT_LABEL)[0].get_ydata()
+        assert np.isnan(u3[:20]).all() and np.all(u3[20:] == 0.2)  # free until it was asked for
+        for fig, expected in ((states, ["tv-box", TARGET_LABEL, SETPOINT_LABEL]),
+                              (inputs, ["tv-box", TARGET_LABEL, SETPOINT_LABEL, "bounds"])):
+            assert [t.get_text() for t in fig.legends[0].get_texts()] == expected  # one legend, below
+            assert not any(ax.get_legend() for ax in fig.axes)
+    finally:
+        plt.close("all")
+
+
+def test_the_cost_marks_the_steps_where_the_setpoint_changed(setpoint_run):
+    from dmpc.plots.targets import CHANGE_LABEL
+
+    run = report.load_run(setpoint_run)
+    np.testing.assert_array_equal(report.setpoint_changes(run), [12, 20])
+    plt = report._pyplot()
+    fig = report._series_figure(plt, [("", run.J, {}, run.method)], "J", "cost", run, report.setpoint_changes(run))
+    try:
+        ax = fig.axes[0]
+        marks = [line for line in ax.get_lines() if line.get_xdata()[0] == line.get_xdata()[-1]]
+        assert [line.get_xdata()[0] for line in marks] == [12, 20]
+        assert [t.get_text() for t in ax.get_legend().get_texts()] == [CHANGE_LABEL]
+    finally:
+        plt.close(fig)
+
+
+def test_a_run_without_setpoints_draws_as_before(paper_run):
+    """Nothing of the setpoints' drawing appears: per state panel the trajectory and the zero line,
+    per input panel the trajectory, the two bounds and the zero line, the legend in the first input
+    panel, and no mark on the cost."""
+    run = report.load_run(paper_run)
+    assert run.tracked is None and report.setpoint_changes(run) is None
+    np.testing.assert_array_equal(run.box_centres(), run.alpha)
+    plt = report._pyplot()
+    states = report._signal_figure(plt, [(run, run.method)], "x", "states")
+    inputs = report._signal_figure(plt, [(run, run.method)], "u", "inputs")
+    cost = report._series_figure(plt, [("", run.J, {}, run.method)], "J", "cost", run, report.setpoint_changes(run))
+    try:
+        assert [len(ax.get_lines()) for ax in states.axes] == [2] * 8
+        assert [len(ax.get_lines()) for ax in inputs.axes] == [4] * 4
+        assert not states.legends and not inputs.legends and not any(ax.get_legend() for ax in states.axes)
+        assert [t.get_text() for t in inputs.axes[0].get_legend().get_texts()] == ["tv-box", "bounds"]
+        assert len(cost.axes[0].get_lines()) == 1 and cost.axes[0].get_legend() is None
+    finally:
+        plt.close("all")
+
+
+def test_terminal_boxes_of_a_run_with_setpoints_lie_around_the_targets(setpoint_run):
+    run = report.load_run(setpoint_run)
+    npz = np.load(setpoint_run / "trajectory.npz")
+    plt = report._pyplot()
+    fig = report._fig1(plt, [report.PlaneSet(run, run.method)], "t", [])
+    try:
+        boxes = [p for p in fig.axes[0].patches if type(p).__name__ == "Rectangle"]
+        assert len(boxes) == 31  # the last target had reached its reference: the box of x(K) is known too
+        centres = np.array([np.asarray(b.get_xy()) + b.get_width() / 2 for b in boxes])
+        expected = npz["alpha"][:, :2] + np.vstack([npz["target"], npz["target"][-1:]])[:, :2]
+        np.testing.assert_allclose(centres, expected, atol=1e-12)
+        assert "x_{s,i}" in fig.legends[0].get_texts()[0].get_text()
+    finally:
+        plt.close(fig)
+
+
+def test_result_plot_draws_the_targets_as_the_report_does(setpoint_run):
+    import dmpc
+    from dmpc.plots.targets import SETPOINT_LABEL, TARGET_LABEL
+
+    run = report.load_run(setpoint_run)
+    plt = report._pyplot()
+    mine = report._signal_figure(plt, [(run, run.method)], "x", "states")
+    theirs = dmpc.load_run(setpoint_run).plot()
+    try:
+        for label in (TARGET_LABEL, SETPOINT_LABEL):
+            for a, b in zip(mine.axes, theirs["states"].axes):
+                ours, result = labelled(a, label), labelled(b, label)
+                assert len(ours) == len(result)
+                for one, other in zip(ours, result):
+                    np.testing.assert_array_equal(one.get_xydata(), other.get_xydata())
+                    assert one.get_linestyle() == other.get_linestyle()
+        marks = [line.get_xdata()[0] for line in theirs["cost"].axes[0].get_lines() if len(line.get_xdata()) == 2]
+        assert marks == [12, 20]
+    finally:
+        plt.close("all")

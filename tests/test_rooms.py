@@ -39,7 +39,7 @@ def simulate(monkeypatch, capsys, out: Path, *overrides: str) -> tuple[int, str,
 
 
 def test_the_rooms_run_ok_in_process_with_names_units_and_seconds():
-    result = dmpc.simulate(ROOMS)
+    result = dmpc.simulate(dmpc.load_scenario(ROOMS, setpoints=[], steps=144))  # regulation to 21 degC
     assert result.verdict == "ok", result.summary["failures"]
     assert result.summary["warnings"] == []  # the mass too is back within 1 % of the start's size
     assert result.states["room1"][0].name == "Ta" and result.states["room1"][0].unit == "K"
@@ -48,6 +48,32 @@ def test_the_rooms_run_ok_in_process_with_names_units_and_seconds():
     u = np.concatenate([result.u[f"room{i}"] for i in range(1, 6)], axis=1)
     assert np.all(np.abs(x[:, 0::2]) <= 3 + 1e-6) and np.all(np.abs(u) <= 2 + 1e-6)  # comfort band, 0-4 kW
     assert np.abs(u).max() > 1.9  # the heaters work at their limits at first
+
+
+def test_the_rooms_follow_their_day_of_setpoints():
+    """The shipped schedule (22:00 to 22:00): every room within 0.3 K of its setpoint when the next
+    one takes over and within 0.01 K at the end, the comfort band and the heaters' range held
+    throughout, every request reachable and every target reached by the applied one (the reference
+    governor) an hour before the next change, and no warning."""
+    result = dmpc.simulate(ROOMS)
+    summary = result.summary
+    assert result.verdict == "ok" and summary["fallbacks"] == 0 and summary["feasible"], summary["failures"]
+    assert summary["warnings"] == []
+    names = [f"room{i}" for i in range(1, 6)]
+    x = np.concatenate([result.x[name] for name in names], axis=1)
+    u = np.concatenate([result.u[name] for name in names], axis=1)
+    assert np.all(np.abs(x[:, 0::2]) <= 3 + 1e-6) and np.all(np.abs(u) <= 2 + 1e-6)
+    for name in names:
+        asked, target = result.setpoint[name][:, 0], result.target[name]
+        assert np.all(np.isfinite(asked))
+        np.testing.assert_allclose(result.reference[name][:, 0], asked, atol=1e-6)  # every request reachable
+        np.testing.assert_allclose(target[:, 1], target[:, 0], atol=1e-9)  # steady: the mass at the air's
+        changes = [k for k in range(1, len(asked)) if asked[k] != asked[k - 1]] + [len(asked)]
+        for k in changes:  # x(k): the state the next setpoint (or the end) finds
+            assert abs(result.x[name][k, 0] - asked[k - 1]) <= (0.01 if k == len(asked) else 0.3), (name, k)
+            np.testing.assert_allclose(target[k - 12:k, 0], asked[k - 1], atol=1e-6)  # applied an hour before
+    assert [(c["subsystem"], c["asked"]) for c in summary["tracking"]["components"]] == [
+        ("room1", -1.0), ("room2", -1.0), ("room3", 0.0), ("room4", 0.0), ("room5", -0.5)]
 
 
 def test_the_rooms_design_needs_more_than_the_centrally_feasible_horizon(monkeypatch, capsys):

@@ -34,7 +34,7 @@ from tests.helpers.tls import ca_key_files
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = str(ROOT / "scenarios" / "paper.yaml")
 ROLES = ["router", "coordinator", "plant", "agent-1", "agent-2", "agent-3", "agent-4", "sensor-1", "sensor-2", "sensor-3",
-         "sensor-4", "observer"]
+         "sensor-4", "observer", "operator"]
 # the paper's chain 1-2-3-4: N_I without I
 NEIGHBOURS = {"1": ["2"], "2": ["1", "3"], "3": ["2", "4"], "4": ["3"]}
 PACKAGE_DIRS = ["dmpc", "agents", "plant", "bus"]
@@ -226,6 +226,27 @@ def test_coordinator_plant_router_and_strangers(cert_dir):
     for message in ("put", "declare_subscriber", "liveliness_token"):
         assert not allowed(acl, "intruder", "ingress", message, "dmpc/r/plan/1")
         assert not allowed(acl, "intruder", "egress", message, "dmpc/r/release")
+
+
+def test_only_the_operator_may_request_setpoints_and_only_the_coordinator_takes_them(cert_dir):
+    acl = read_acl(cert_dir)
+    for sender in ("operator", "cli", "scada"):  # any sender name under the operator's certificate
+        assert allowed(acl, "operator", "ingress", "put", f"dmpc/r/setpoint/{sender}")
+        assert allowed(acl, "operator", "ingress", "declare_subscriber", f"dmpc/r/setpoint-answer/{sender}")
+        assert allowed(acl, "operator", "egress", "put", f"dmpc/r/setpoint-answer/{sender}")
+        assert allowed(acl, "coordinator", "ingress", "declare_subscriber", f"dmpc/r/setpoint/{sender}")
+        assert allowed(acl, "coordinator", "egress", "put", f"dmpc/r/setpoint/{sender}")
+        assert allowed(acl, "coordinator", "ingress", "put", f"dmpc/r/setpoint-answer/{sender}")
+        for role in ("plant", "sensor-1", "agent-1", "agent-2", "observer", "intruder"):
+            assert not allowed(acl, role, "ingress", "put", f"dmpc/r/setpoint/{sender}"), role
+            assert not allowed(acl, role, "egress", "put", f"dmpc/r/setpoint-answer/{sender}"), role
+        assert not allowed(acl, "operator", "ingress", "put", f"dmpc/r/setpoint-answer/{sender}")
+    for key in ("dmpc/r/release", "dmpc/r/control", "dmpc/r/inputs", "dmpc/r/plan/1", "dmpc/r/ready/1",
+                "dmpc/r/state/plant", "dmpc/r/telemetry/step"):
+        assert not allowed(acl, "operator", "ingress", "put", key), key
+        assert not allowed(acl, "operator", "egress", "put", key), key
+    assert not allowed(acl, "operator", "ingress", "liveliness_token", "dmpc/r/alive/operator")
+    assert allowed(acl, "operator", "ingress", "declare_liveliness_subscriber", "dmpc/r/alive/*")
 
 
 def test_acl_bound_to_one_run(prepared):

@@ -11,6 +11,7 @@ import pytest
 
 import dmpc
 from dmpc.scenario import build_system, load_scenario
+from dmpc.setup import prepare
 from dmpc.tracking.targets import Request, TargetSpace
 from tests.helpers.reference import PAPER, U_BAR, chain_matrices
 
@@ -134,17 +135,19 @@ def test_a_large_jump_moves_the_applied_target_by_the_governor(jump):
 
 def test_the_plain_shifted_problem_is_infeasible_at_the_jump(jump):
     """Without the governor the target of step 40 would be the request itself: the plans of step 39
-    end outside its terminal set, so the shifted candidates break a constraint of QP_i at k = 40."""
+    end where the terminal box of step 40 around it would be empty (beta(40) = sigma(alpha(40)) < 0),
+    so every QP of step 40 would be infeasible. The target the governor applied keeps it non-empty."""
     arrays = np.load(jump.folder / "trajectory.npz")
-    omega = jump.design.omega
+    prepared = prepare(load_scenario(PAPER))
+    terminal, K = prepared.design.terminal, prepared.design.gains.K_global()
+    AK = A + B @ K
     eta = np.hstack([arrays[f"plan_z_{name}"][39][-1] for name in NAMES])  # eta(39)
-    reference = stacked(jump, "reference")[40]
-    reference_u = np.hstack([jump.reference_u[n] for n in NAMES])[40]
     space = TargetSpace(PAPER_SYSTEM)
-    scale = space.scale(reference, reference_u)
-    assert np.max(omega @ (eta - reference)) > scale
-    applied = stacked(jump, "target")[40]
-    assert np.max(omega @ (eta - applied)) <= space.scale(applied, np.hstack([jump.target_u[n] for n in NAMES])[40]) + 1e-6
+    requested = stacked(jump, "reference")[40], np.hstack([jump.reference_u[n] for n in NAMES])[40]
+    applied = stacked(jump, "target")[40], np.hstack([jump.target_u[n] for n in NAMES])[40]
+    assert terminal.sigma(AK @ (eta - requested[0]), space.scale(*requested)) < -0.1
+    beta_40 = terminal.sigma(AK @ (eta - applied[0]), space.scale(*applied))
+    assert beta_40 >= -1e-9 and beta_40 == pytest.approx(arrays["beta"][40], abs=1e-9)
 
 
 def test_free_setpoints_change_nothing():

@@ -12,10 +12,10 @@ from hypothesis import strategies as st
 from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
 from dmpc.scenario import load_scenario
 from dmpc.setup import prepare
-from dmpc.tracking.governor import ReferenceGovernor
+from dmpc.tracking.governor import RESERVE, ReferenceGovernor
 from dmpc.tracking.schedule import Schedule, SetpointEntry
-from dmpc.tracking.targets import DEFAULT_MARGIN, Request, TargetError, TargetSpace
-from tests.helpers.reference import PAPER, U_BAR, chain_matrices
+from dmpc.tracking.targets import DEFAULT_MARGIN, MARGIN_ROOM, Request, TargetError, TargetSpace
+from tests.helpers.reference import PAPER, ROOT, U_BAR, chain_matrices
 
 MARGIN = DEFAULT_MARGIN
 
@@ -36,7 +36,7 @@ def governor(paper, space):
     K = np.zeros((4, 8))
     for i, k in enumerate(paper.design.gains.K):
         K[i, 2 * i:2 * i + 2] = k
-    return ReferenceGovernor(space, paper.design.terminal, A + B @ K), A + B @ K, K
+    return ReferenceGovernor(space, paper.design.terminal, A + B @ K, K), A + B @ K, K
 
 
 def request(n: int, m: int, x: dict | None = None, u: dict | None = None) -> Request:
@@ -87,14 +87,25 @@ def test_the_reachable_range_is_the_steady_gain_times_the_inputs(space):
     assert inside.reachable
     beyond = space.target(request(8, 4, {0: 60.0}))
     assert not beyond.reachable
-    assert beyond.x[0] == pytest.approx((1 - MARGIN) * top, rel=1e-7)
-    assert beyond.gap_x[0] == pytest.approx((1 - MARGIN) * top - 60.0, rel=1e-7)
+    assert beyond.x[0] == pytest.approx((1 - MARGIN - MARGIN_ROOM) * top, rel=1e-7)
+    assert beyond.gap_x[0] == pytest.approx((1 - MARGIN - MARGIN_ROOM) * top - 60.0, rel=1e-7)
     assert np.isnan(beyond.gap_x[1:]).all()
 
 
 def test_an_input_target_is_met(space):
     t = space.target(request(8, 4, u={1: 0.5}))
     assert t.reachable and t.u[1] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_a_request_no_steady_state_can_meet_is_the_nearest_one_not_an_error():
+    """A cart's velocity is zero at every steady state: asking 0.5 gives the nearest target (v = 0)
+    with its gap, whatever the solver makes of the infeasible exact problem."""
+    system = prepare(load_scenario(ROOT / "scenarios" / "carts.yaml")).system
+    space = TargetSpace(system)
+    t = space.target(request(system.n, system.m, {1: 0.5}))
+    assert not t.reachable
+    assert abs(t.x[1]) < 1e-9 and t.gap_x[1] == pytest.approx(-0.5, abs=1e-9)
+    assert np.abs(system.A @ t.x + system.B @ t.u - t.x).max() < 1e-9
 
 
 def test_bad_requests_are_refused(space):
@@ -141,9 +152,14 @@ def test_the_governor_takes_the_largest_safe_fraction_of_a_big_jump(space, gover
     assert gov.slack(eta, there) < 0  # the plain jump leaves the candidates infeasible
     step = gov.step(eta, here, there)
     assert 0 < step.theta < 1
-    assert gov.slack(eta, step.target) >= -1e-12
+    # as far as the candidates stay feasible with the reserve: a box of RESERVE times the full one
+    reserve = RESERVE * here.scale * gov.terminal.sigma(np.zeros(8))
+    assert min(gov.slacks(eta, here)[1], gov.slacks(eta, here)[0]) > reserve > 0
+    tail, box = gov.slacks(eta, step.target)
+    assert tail >= 0 and box >= reserve - 1e-12
     further = here.towards(there, step.theta + 1e-6, space)
-    assert gov.slack(eta, further) < 0
+    tail, box = gov.slacks(eta, further)
+    assert tail < 0 or box < reserve
     assert np.abs(step.target.x - (here.x + step.theta * (there.x - here.x))).max() < 1e-12
 
 
@@ -210,7 +226,7 @@ def test_targets_of_random_systems_are_admissible_steady_states(system, data):
     assert np.abs(system.A @ t.x + system.B @ t.u - t.x).max() <= 1e-7 * scale * (1 + np.abs(t.x).max())
     assert space.gauge(t.x, t.u) <= 1 - MARGIN + 1e-7
     assert t.scale >= MARGIN - 1e-7
-    best = independent_nearest(system, wanted, MARGIN)
+    best = independent_nearest(system, wanted, MARGIN + MARGIN_ROOM)  # the margin the targets keep
     achieved = float(np.diag(system.Q)[component] * (t.x[component] - value) ** 2)
     assert achieved <= best + 1e-6 * (1 + best)
     if t.reachable:

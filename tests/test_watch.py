@@ -438,3 +438,107 @@ def test_watch_serves_the_page_and_bokehjs_on_loopback_and_stops_on_ctrl_c(recor
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+# ------------------------------------------------------------------------------------------ setpoints
+SETPOINTS = [{"at": 0, "subsystem": "1", "x": [1.0, None]}, {"at": 15, "subsystem": "1", "x": [-0.5, None]}]
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory):
+    """A simulated run of the paper's example with setpoints on x_11: (run folder, its StepRecords)."""
+    import dmpc
+    from dmpc.records.session import RunRecorder
+    from dmpc.runtime.inprocess import simulate
+    from dmpc.setup import prepare
+
+    prepared = prepare(dmpc.load_scenario(PAPER, setpoints=SETPOINTS))
+    out = tmp_path_factory.mktemp("watch-setpoints") / "run"
+    records = []
+    with RunRecorder(out, prepared, show_progress=False) as recorder:
+        def on_step(rec):
+            recorder.on_step(rec)
+            records.append(rec)
+
+        simulate(prepared, on_step)
+        recorder.complete(runtime="in-process")
+    return out, records
+
+
+def test_a_step_message_of_a_run_with_setpoints_carries_its_target_and_setpoint(tracked):
+    folder, records = tracked
+    msg = decode(encode("step", "r-1", step=step_line(records[20]), plant={}), "r-1")["step"]
+    npz = np.load(folder / "trajectory.npz")
+    np.testing.assert_array_equal(msg["target"], npz["target"][20])
+    assert msg["setpoint"] == [-0.5] + [None] * 7 and len(msg["target_u"]) == len(msg["setpoint_u"]) == 4
+    live = RunState("bus")
+    live.set_meta(folder_meta(folder))
+    assert live.add_step(msg)
+    bad = dict(msg, target=msg["target"][:3])
+    state = fed(folder, 0)
+    assert not state.add_step(bad) and "target has 3 entries, the run 8" in state.problems[0]
+
+
+def test_page_draws_the_targets_and_setpoints_of_a_replayed_run(tracked):
+    """A run folder with setpoints: each subsystem's targets go to its plots; the setpoint lines
+    show only where a component was requested; the readout has the target at k."""
+    from bokeh.document import Document
+
+    from dmpc.watch.page import WatchPage
+
+    folder, _ = tracked
+    npz = np.load(folder / "trajectory.npz")
+    page = WatchPage(Document(), fed(folder), live=False)
+    for i, name in enumerate(["1", "2", "3", "4"]):
+        targets = page.doc.get_model_by_name(f"targets-{name}")
+        assert targets.data["k"] == list(range(30))
+        np.testing.assert_array_equal(np.column_stack([targets.data["target_x1"], targets.data["target_x2"]]),
+                                      npz["target"][:, 2 * i:2 * i + 2])
+        np.testing.assert_array_equal(targets.data["target_u1"], npz["target_u"][:, i])
+        np.testing.assert_array_equal(targets.data["setpoint_x1"], npz["setpoint"][:, 2 * i])
+    shown = {(i, kind, what): models[0].visible for i, kind, what, models in page.tracking}
+    assert all(shown[i, kind, "target"] for i in range(4) for kind in "xu")
+    assert [key for key, visible in shown.items() if key[2] == "setpoint" and visible] == [(0, "x", "setpoint")]
+    page.slider.value = 20
+    assert "dmpc-target'>-0.5, " in page.readout.text and "dmpc-setpoint'>-0.5, -<" in page.readout.text
+
+
+def test_page_of_a_run_without_setpoints_shows_no_targets(recorded):
+    from bokeh.document import Document
+
+    from dmpc.watch.page import WatchPage
+
+    folder, _ = recorded
+    page = WatchPage(Document(), fed(folder), live=False)
+    assert page.tracking and not any(model.visible for *_, models in page.tracking for model in models)
+    assert page.doc.get_model_by_name("targets-1").data["k"] == []  # nothing sent to the browser
+    assert "dmpc-target" not in page.readout.text
+
+
+def test_a_page_that_follows_a_run_shows_targets_from_the_first_step_that_has_them(tracked):
+    """A request taken while the run goes on: the steps before it have no targets, and the page
+    starts drawing them when the first one arrives, aligned with the steps already shown."""
+    from bokeh.document import Document
+
+    from dmpc.watch.page import WatchPage
+
+    folder, _ = tracked
+    npz = np.load(folder / "trajectory.npz")
+    untracked = [{key: v for key, v in line.items() if key not in ("setpoint", "setpoint_u", "reference",
+                                                                    "reference_u", "target", "target_u", "governor")}
+                 for line in lines(folder)[:10]]
+    state = fed(folder, 0)
+    for line in untracked:
+        state.add_step(line)
+    page = WatchPage(Document(), state, live=True)
+    targets = page.doc.get_model_by_name("targets-1")
+    assert not page.tracked and targets.data["k"] == []
+    for line in lines(folder)[10:]:
+        state.add_step(line)
+    page.tick()
+    assert page.tracked and targets.data["k"] == list(range(30))
+    x1 = np.array(targets.data["target_x1"])
+    assert np.isnan(x1[:10]).all()
+    np.testing.assert_array_equal(x1[10:], npz["target"][10:, 0])
+    page.slider.value = 5
+    assert len(targets.data["k"]) == 6 and len(page.doc.get_model_by_name("cost").data["k"]) == 6

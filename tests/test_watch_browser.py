@@ -161,3 +161,43 @@ def test_replay_shows_the_numbers_of_trajectory_npz_at_a_chosen_step(paper_simul
             assert proc.wait(timeout=10) == 0
         finally:
             stop(proc)
+
+
+def test_replay_of_a_run_with_setpoints_draws_its_targets(tmp_path):
+    """``dmpc watch`` on the night of scenarios/rooms.yaml (12 h of its setpoints): each room's plots hold
+    the targets applied and the setpoints of trajectory.npz, their lines and legend entries shown;
+    the readout has the target and the setpoint at the chosen step."""
+    require_chromium()
+    import dmpc
+
+    folder = tmp_path / "rooms"
+    dmpc.simulate("scenarios/rooms.yaml", out=folder, steps=144)  # the night: setback, then the warm-up
+    npz = np.load(folder / "trajectory.npz")
+    with chromium(height=1700) as driver:
+        proc = start("watch", str(folder))
+        try:
+            url = Lines(proc).wait_for(r"live view: (http://127\.0\.0\.1:\d+/)", 60).group(1)
+            driver.get(url)
+            wait_until(lambda: model(driver, "step-slider", "m.value") == 144, 30, what="the slider at the end")
+            for i in range(5):
+                name = f"room{i + 1}"
+                targets = model(driver, f"targets-{name}",
+                                "['k', 'target_x1', 'target_x2', 'setpoint_x1', 'target_u1']"
+                                ".map(c => Array.from(m.data[c]))")
+                assert targets[0] == list(range(144))
+                np.testing.assert_array_equal(np.column_stack(targets[1:3]), npz["target"][:, 2 * i:2 * i + 2])
+                np.testing.assert_array_equal(targets[3], npz["setpoint"][:, 2 * i])
+                np.testing.assert_array_equal(targets[4], npz["target_u"][:, i])
+                for what, kind in (("target", "x"), ("setpoint", "x"), ("target", "u")):
+                    assert model(driver, f"legend-{what}-{kind}-{name}", "m.visible") is True, (what, kind, name)
+                assert model(driver, f"legend-setpoint-u-{name}", "m.visible") is False  # no input requested
+            k = 50  # 02:10: room5 warms up, the others are still set back
+            driver.execute_script(f"Bokeh.documents[0].get_model_by_name('step-slider').value = {k}")
+            expected = ", ".join(f"{v:.6g}" for v in npz["target"][k, :2])
+            wait_until(lambda: class_text(driver, "dmpc-target") == expected, 10, what="the target in the readout")
+            assert class_texts(driver, "dmpc-setpoint")[4] == f"{npz['setpoint'][k, 8]:.6g}, -"
+            screenshot(driver, "watch-setpoints.png")
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(timeout=10) == 0
+        finally:
+            stop(proc)

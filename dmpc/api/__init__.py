@@ -10,11 +10,12 @@ import contextlib
 import re
 import secrets
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Union
 
 from dmpc.api.result import Result, load_run
+from dmpc.api.setpoints import LiveRun, SetpointError, SetpointRefused, SetpointUnanswered, StartHook, setpoint
 from dmpc.bus import keys
 from dmpc.core.errors import DmpcError
 from dmpc.offline.record import Design
@@ -34,7 +35,8 @@ from dmpc.terminal.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 
 ScenarioLike = Union[str, Path, Mapping, Scenario]
 
-__all__ = ["RunError", "design", "load_run", "load_scenario", "run", "simulate"]
+__all__ = ["LiveRun", "RunError", "SetpointError", "SetpointRefused", "SetpointUnanswered", "design", "load_run",
+           "load_scenario", "run", "setpoint", "simulate"]
 
 
 class RunError(DmpcError, RuntimeError):
@@ -155,7 +157,8 @@ def simulate(scenario: ScenarioLike, *, method: str | None = None, out: str | Pa
 
 def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | None = None,
         plant: PlantFunction | None = None, progress: bool = False, steps: int | None = None,
-        startup_timeout: float = 60.0, topology: str | None = None, agents_per_process: int = 1) -> Result:
+        startup_timeout: float = 60.0, topology: str | None = None, agents_per_process: int = 1,
+        secure: bool = False, on_start: Callable[[LiveRun], object] | None = None) -> Result:
     """Run the plant and one process per agent over Zenoh on this machine (as ``dmpc run``).
 
     Every process is stopped when the run ends, fails, or is interrupted (Ctrl-C re-raises
@@ -174,6 +177,14 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
         How the processes connect; the default depends on the number of agent processes.
     agents_per_process : int
         Agents served by each agent process (``dmpc run --agents-per-process``); 1 by default.
+    secure : bool
+        Every link over TLS with certificates and access control made for this run in the run
+        folder's ``tls/`` (as ``dmpc run --secure``).
+    on_start : callable LiveRun -> None, optional
+        Called in a daemon thread once the run's processes are being started, with the run's
+        endpoint, id, certificate directory and folder, and methods to change a setpoint
+        (:meth:`LiveRun.setpoint`) and to wait for a step (:meth:`LiveRun.wait_for_step`). What
+        it raises is raised again once the run is over and its processes are stopped.
 
     Returns
     -------
@@ -196,16 +207,24 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
         function, _ = load_plant_function(reference)
         prepared = with_plant_function(prepared, function, reference)
     if prepared.method == "centralized":  # one QP in one process: no agents to start
+        if secure or on_start is not None:
+            raise ValueError("secure and on_start apply to a run over Zenoh; method 'centralized' runs in this "
+                             "process (dmpc.simulate)")
         return simulate(prepared.scenario, out=out, plant=plant, progress=progress)
+    if secure and agents_per_process > 1:
+        raise ValueError("secure=True needs agents_per_process=1: a certificate belongs to one agent")
     run_id = re.sub(r"[^A-Za-z0-9_.-]", "-", prepared.name)[:55] + "-" + secrets.token_hex(4)
+    hook = StartHook(on_start, prepared.scenario) if on_start is not None else None
     with _run_folder(out) as (folder, temporary):
         outcome = launch(prepared, folder, run_id, startup_timeout=startup_timeout, show_progress=progress,
                          topology=topology or default_topology(len(group_agents(prepared.names, agents_per_process))),
-                         plant_model=reference, agents_per_process=agents_per_process)
+                         plant_model=reference, agents_per_process=agents_per_process, secure=secure, on_ready=hook)
         if outcome.code == EXIT_INTERRUPTED:
             raise KeyboardInterrupt
         if outcome.code != EXIT_OK:
             _raise_failure(folder, outcome.message, plant is not None)
+        if hook is not None:
+            hook.finish()
         return load_run(folder, in_temporary_folder=temporary)
 
 

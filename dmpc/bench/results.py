@@ -7,7 +7,7 @@ from pathlib import Path
 
 from rich.progress import Progress
 
-from dmpc.bench import common, measures
+from dmpc.bench import common, measures, setpoints
 from dmpc.bench.scale import HEADER as SCALE_HEADER
 from dmpc.bench.scale import markdown_row as scale_markdown_row
 from dmpc.bench.scale import scale_row
@@ -16,11 +16,12 @@ from dmpc.terminal.console import stderr_console
 FULL = {"qp_horizons": [5, 10, 20], "qp_repeat": 20,
         "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
         "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
-        "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)]}
+        "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)], "setpoints": [4, 64, 256]}
 QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
-         "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": []}
+         "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": [], "setpoints": [4]}
 """``floor_sets``: floor and run alternated that many times at M = 4 (once at larger M). ``scale``:
-rows (M, agents per process, steps) of the chain run with agents hosted many to a process."""
+rows (M, agents per process, steps) of the chain run with agents hosted many to a process.
+``setpoints``: the M of the chain for what a setpoint costs (:mod:`dmpc.bench.setpoints`)."""
 
 HISTORY_HEADING = "## History: earlier measurements (dated, not regenerated)"
 """Everything of a report from this heading on is written by hand and kept when it is regenerated."""
@@ -29,10 +30,10 @@ HISTORY_HEADING = "## History: earlier measurements (dated, not regenerated)"
 def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
     plan = QUICK if quick else FULL
     tasks = (len(plan["qp_horizons"]) + len(plan["runtime"]) + 3 * len(plan["baselines"]) + len(plan["design"])
-             + len(plan["scale"]))
+             + len(plan["scale"]) + len(plan["setpoints"]))
     results: dict = {"machine": common.machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                      "quick": quick, "qp": [], "runtime": [], "inprocess": [], "central_osqp": [],
-                     "central_cvxpy": [], "design": [], "scale": []}
+                     "central_cvxpy": [], "design": [], "scale": [], "setpoints": []}
     started = time.monotonic()
     with Progress(console=stderr_console(), transient=True, disable=not show_progress) as progress, \
             common.workdir() as tmp:
@@ -62,6 +63,9 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
         for M, per_process, steps in plan["scale"]:
             results["scale"].append(scale_row(M, per_process, steps, Path(tmp), root))
             step(f"hosted M={M}")
+        for M in plan["setpoints"]:
+            results["setpoints"].append({**setpoints.target_costs(M, root), **setpoints.step_costs(M, root=root)})
+            step(f"setpoints M={M}")
     results["seconds"] = time.monotonic() - started
     results["machine"]["load_average_end"] = common.load_average()
     results["headline"] = headline(results)
@@ -243,6 +247,7 @@ def markdown(results: dict, command: str) -> str:
                      f"{_fmt(d.get('design_s'))} | {d['omega_rows']} | {d['t_star']} | {_fmt(d.get('sigma0'), 6)} | "
                      f"{_fmt(d.get('terminal_set_plain_s'))} | {same} |")
     lines += scale_lines(results.get("scale", []))
+    lines += setpoint_lines(results.get("setpoints", []))
     return "\n".join(lines) + "\n"
 
 
@@ -296,6 +301,26 @@ def scale_lines(rows: list[dict]) -> list[str]:
             "every process. Cost ratio: the DMPC run's closed-loop cost over the centralised loop's.", "",
             "| " + " | ".join(SCALE_HEADER) + " |", "|" + "---|" * len(SCALE_HEADER),
             *[scale_markdown_row(r) for r in rows]]
+
+
+def setpoint_lines(rows: list[dict]) -> list[str]:
+    """The table of what a setpoint costs (:mod:`dmpc.bench.setpoints`)."""
+    if not rows:
+        return []
+    return ["", "## What a setpoint costs (chain family, in this process)", "",
+            "A new target: the steady-state QP of a new request (x_{1,1} asked; median of five values, the first "
+            "request of a run, which also builds the QP's matrices, apart). Its terminal set: lambda and sigma at "
+            "its centre (X^f scaled, no LP). Governor: one step of the reference governor that bisects (a jump "
+            "from the origin). Step times in process (`dmpc simulate`'s loop, 40 steps, x_{1,1} = 1 asked from "
+            "step 20): the median step without setpoints, with the schedule before the change, the step whose end "
+            "decides the new target, and the median step after it (around the target).", "",
+            "| M | n | rows of Omega | first target (ms) | new target (ms) | terminal set (ms) | governor step (ms) "
+            "| step without (ms) | step before (ms) | step deciding the target (ms) | step around the target (ms) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+            *[f"| {r['M']} | {r['n']} | {r['omega_rows']} | {r['first_target_ms']:.1f} | {r['target_ms']:.1f} | "
+              f"{r['terminal_set_ms']:.2f} | {r['governor_ms']:.1f} | {r['plain_ms_p50']:.2f} | "
+              f"{r['tracked_ms_p50']:.2f} | {r['change_step_ms']:.2f} | {r['around_target_ms_p50']:.2f} |"
+              for r in rows]]
 
 
 def kept_history(previous: str) -> str:

@@ -23,7 +23,7 @@ from dmpc.terminal.console import error_line, silence_c_stdout
 from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED
 
 COMMANDS = (local.validate, local.design, local.simulate, network.agent, network.coordinator, network.plant,
-            network.router, network.relay, network.certs, launch.run, launch.bench, local.report, launch.watch,
+            network.router, network.relay, network.certs, network.setpoint, launch.run, launch.bench, local.report, launch.watch,
             local.compare, local.roa)
 """Every command, in the order ``dmpc --help`` lists them."""
 for command in COMMANDS:

@@ -276,11 +276,11 @@ def require_agents(prepared, role: str) -> None:
 MethodsOpt = Annotated[Optional[list[str]], typer.Option("--methods", help="Methods to run (default: all): --methods tv-box centralized ...", show_default=False)]
 
 
-def checked_methods(methods: list[str] | None) -> list[str]:
+def checked_methods(methods: list[str] | None, setpoints: bool = False) -> list[str]:
     from dmpc.evaluation.compare import check_methods  # start-up time: the comparison only for `dmpc compare`
 
     try:
-        return check_methods(methods)
+        return check_methods(methods, setpoints)
     except ValueError as exc:
         raise InputError(f"--methods: {exc}") from None
 

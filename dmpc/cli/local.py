@@ -108,8 +108,8 @@ def compare(scenario: ScenarioArg,
     from dmpc.evaluation.compare import compare as run_compare  # start-up time: as above
     from dmpc.methods import DEFAULT_METHOD  # start-up time: as above
 
-    methods = checked_methods(methods)
     scn = load_scenario_file(scenario, set_, steps)
+    methods = checked_methods(methods, bool(scn.setpoints))
     data = run_compare(scn, out, methods, show_progress=not quiet)
     console = stdout_console()
     console.print(table(f"methods on '{data['scenario']}'", COMPARISON_HEADER, comparison_rows(data)))
@@ -170,6 +170,9 @@ def roa(scenario: ScenarioArg,
         raise InputError(f"--box: must be a positive number, got {box}")
     methods = checked_methods(methods)
     scn = load_scenario_file(scenario, set_)
+    if scn.setpoints:
+        raise InputError(f"{scenario}: dmpc roa measures where regulation to the origin succeeds, and the scenario "
+                         "has setpoints: run it without them (--set 'setpoints=[]')")
     out = out or default_out(None, f"roa-{scn.name}")
     claim_folder(out, ROA_FILE, "a region-of-attraction table")
     progress = None

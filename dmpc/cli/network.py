@@ -2,6 +2,7 @@
 the plant, a router, a delaying relay; and the certificates that secure them."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -48,7 +49,7 @@ from dmpc.records.run_folder import write_json
 from dmpc.runtime import signals
 from dmpc.runtime.memory import settle_after_startup
 from dmpc.terminal.console import error_line
-from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED
+from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED
 
 
 def _write_report(path: Path, report: dict) -> None:
@@ -307,7 +308,7 @@ def certs(directory: Annotated[Path, typer.Argument(help="Directory to write (cr
           force: Annotated[bool, typer.Option("--force", help="Replace certificates already in DIRECTORY, and the CA key file.")] = False,
           ca_key: Annotated[Optional[Path], typer.Option("--ca-key", help="Where to write the CA's private key, mode 0600 (default: DIRECTORY-ca.key beside DIRECTORY, never inside it).", show_default=False)] = None,
           set_: SetOpt = None) -> None:
-    """Make a CA, a certificate and key per role (router, coordinator, plant, agent-<name>, sensor-<name>, observer) and acl.json."""
+    """Make a CA, a certificate and key per role (router, coordinator, plant, agent-<name>, sensor-<name>, observer, operator) and acl.json."""
     from dmpc.scenario import build_system  # start-up time: pydantic only where needed
     from dmpc.security.certs import (  # start-up time: cryptography only here
         DEFAULT_HOSTS,
@@ -327,3 +328,82 @@ def certs(directory: Annotated[Path, typer.Argument(help="Directory to write (cr
     print(f"{directory}: CA certificate, {len(roles)} certificates ({', '.join(roles)}) and acl.json")
     print(f"the CA's private key is {ca_key} (mode 0600): keep it off the nodes, offline; whoever has it can "
           "make a certificate for any role. Give each node ca.pem, acl.json and its own role's files")
+
+
+def setpoint(connect: ConnectOpt = None,
+             run_id: Annotated[Optional[str], typer.Option("--run-id", help="The id of the run whose setpoint to change (dmpc run prints it with the coordinator's endpoint).", show_default=False)] = None,
+             subsystem: Annotated[Optional[str], typer.Option("--subsystem", help="The subsystem's name in the scenario.", show_default=False)] = None,
+             x: Annotated[Optional[list[str]], typer.Option("--x", help="Target states: by position, 1.0,null (null: free); or by name, Ta=1.5 (repeatable, needs --scenario). Omitted: every state free.", show_default=False)] = None,
+             u: Annotated[Optional[list[str]], typer.Option("--u", help="Target inputs, the same way as --x. Omitted: every input free.", show_default=False)] = None,
+             scenario: Annotated[Optional[Path], typer.Option("--scenario", help="The run's scenario (or its run folder's scenario.yaml): lets --x and --u name components, and checks the subsystem and the number of entries before sending.", show_default=False)] = None,
+             tls: Annotated[Optional[Path], typer.Option("--tls", help="Certificate directory from 'dmpc certs' (or a 'dmpc run --secure' folder's tls/): connect over TLS as the role 'operator'.", show_default=False)] = None,
+             timeout: Annotated[float, typer.Option("--timeout", min=0.1, help="Seconds to wait for the coordinator's answer, connecting included.")] = 5.0,
+             name: Annotated[str, typer.Option("--name", help="This program's name as the request's sender (where the answer is sent).")] = "cli") -> None:
+    """Change a subsystem's setpoint while a run goes on: send the request to the run's coordinator
+    and wait for its answer (exit 0 accepted, 2 refused, 1 no answer)."""
+    from dmpc.bus.session import BusError  # start-up time: zenoh only for network commands
+    from dmpc.runtime.setpoints import components, scenario_subsystem, send_setpoint  # start-up time: zenoh only here
+
+    if not connect:
+        raise InputError("--connect: the coordinator's endpoint is needed, e.g. tcp/127.0.0.1:7447")
+    if run_id is None:
+        raise InputError("--run-id: the id of the run is needed (dmpc run prints it with the coordinator's endpoint)")
+    if subsystem is None:
+        raise InputError("--subsystem: the name of the subsystem whose setpoint to change is needed")
+    if x is None and u is None:
+        raise InputError("give --x or --u (null for a free component; --x null,null frees both states of a "
+                         "subsystem with two)")
+    given = {"--x": flag_components(x, "--x"), "--u": flag_components(u, "--u")}
+    named = next((flag for flag, values in given.items() if isinstance(values, dict)), None)
+    if named is not None and scenario is None:
+        raise InputError(f"{named}: values by name need --scenario FILE (the run's scenario, which names the "
+                         f"components), or give them by position, e.g. {named} 1.5,null")
+    spec = scenario_subsystem(load_scenario_file(scenario, None), subsystem) if scenario is not None else None
+    x_values = components(given["--x"], "x", "--x", subsystem, spec)
+    u_values = components(given["--u"], "u", "--u", subsystem, spec)
+    try:
+        answer = send_setpoint(connect, run_id, subsystem, x_values, u_values, sender=name, tls_dir=tls,
+                               timeout=timeout)
+    except BusError as exc:
+        error_line(str(exc))
+        raise typer.Exit(EXIT_FAILED) from None
+    if answer is None:
+        print(f"no answer from the coordinator of run {run_id} within {timeout:g} s", file=sys.stderr)
+        raise typer.Exit(EXIT_FAILED)
+    if not answer.accepted:
+        print(f"refused: {' '.join(answer.reason.split())}", file=sys.stderr)
+        raise typer.Exit(EXIT_INPUT)
+    print(f"accepted: subsystem {answer.subsystem} from step {answer.k}")
+
+
+def flag_components(texts: list[str] | None, flag: str) -> list[float | None] | dict[str, float | None] | None:
+    """The values of ``--x`` or ``--u``: ``1.0,null`` by position (one flag), or ``NAME=VALUE`` by
+    name (comma-separated, the flag repeatable); None when not given."""
+    if texts is None:
+        return None
+    parts = [part.strip() for text in texts for part in text.split(",")]
+    named = ["=" in part for part in parts]
+    if any(named) and not all(named):
+        raise InputError(f"{flag}: give every value by position (1.0,null) or every one by name (Ta=1.5), not both")
+    if not any(named):
+        if len(texts) > 1:
+            raise InputError(f"{flag}: by position, give one {flag} with every value, e.g. {flag} 1.0,null")
+        return [_flag_value(part, flag) for part in parts]
+    pairs = [part.split("=", 1) for part in parts]
+    out: dict[str, float | None] = {}
+    for key, value in pairs:
+        key = key.strip()
+        if not key or key in out:
+            raise InputError(f"{flag}: {'a name is missing' if not key else f'{key!r} is given twice'} in "
+                             f"{', '.join(texts)}")
+        out[key] = _flag_value(value.strip(), f"{flag} {key}")
+    return out
+
+
+def _flag_value(text: str, where: str) -> float | None:
+    if text.lower() in ("null", "none", "free"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"{where}: expected a number or null (free), got {text!r}") from None

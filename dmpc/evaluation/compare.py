@@ -8,7 +8,7 @@ The offline design is computed once and reused by every method (they share it by
 | ``run_dir`` | the method's run folder, relative to DIR |
 | ``closed_loop_cost`` | sum_k x(k)'Q x(k) + u(k)'R u(k) |
 | ``J``, ``S`` | the lists over k (``summary.json``) |
-| ``steps_to_1e-3`` | the first k with ||x(k)||_inf < 1e-3, or null if never |
+| ``steps_to_1e-3`` | the first k with ||x(k) - x_s||_inf < 1e-3 (x_s: the last target applied, the origin without setpoints), or null if never |
 | ``feasible`` | every QP of every step solved |
 | ``fallbacks`` | fallbacks applied (agent-steps) |
 | ``solve_time_median_s`` | median QP solve time |
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dmpc.core.steps import SETPOINT_METHODS
 from dmpc.methods import METHOD_NAMES, method_spec
 from dmpc.records.files import COMPARISON, STEP_LOG, TRAJECTORY
 from dmpc.records.run_folder import claim_folder, refuse_used, write_json
@@ -32,18 +33,23 @@ from dmpc.setup import prepare
 CONVERGED = 1e-3
 
 
-def steps_to(x: np.ndarray, tol: float = CONVERGED) -> int | None:
-    """The first k with ||x(k)||_inf < tol, or None; x has shape (K+1, n)."""
-    hit = np.flatnonzero(np.max(np.abs(x), axis=1) < tol)
+def steps_to(x: np.ndarray, tol: float = CONVERGED, target: np.ndarray | None = None) -> int | None:
+    """The first k with ||x(k) - target||_inf < tol, or None; x has shape (K+1, n), target (n,)
+    (the origin by default)."""
+    hit = np.flatnonzero(np.max(np.abs(x if target is None else x - target), axis=1) < tol)
     return int(hit[0]) if hit.size else None
 
 
-def check_methods(methods: list[str] | None) -> list[str]:
-    """The methods to run (all by default), checked; ValueError naming an unknown one."""
+def check_methods(methods: list[str] | None, setpoints: bool = False) -> list[str]:
+    """The methods to run, checked; ValueError naming an unknown one, or one that does not track the
+    scenario's ``setpoints``. By default all of them, or with setpoints those that track them."""
     if not methods:
-        return list(METHOD_NAMES)
+        return list(SETPOINT_METHODS if setpoints else METHOD_NAMES)
     for name in methods:
         method_spec(name)
+        if setpoints and name not in SETPOINT_METHODS:
+            raise ValueError(f"the method '{name}' does not track setpoints, and the scenario has them (methods that "
+                             f"do: {', '.join(SETPOINT_METHODS)})")
     if len(set(methods)) != len(methods):
         raise ValueError(f"a method is listed twice: {', '.join(methods)}")
     return list(methods)
@@ -58,13 +64,15 @@ def check_out(out: Path, methods: list[str]) -> None:
 
 def method_entry(run_dir: Path, out: Path, summary: dict) -> dict:
     """The comparison.json entry of one method's run folder."""
-    x = np.load(run_dir / TRAJECTORY)["x"]
+    arrays = np.load(run_dir / TRAJECTORY)
+    x = arrays["x"]
+    target = arrays["target"][-1] if "target" in arrays.files and arrays["target"].shape[0] else None
     return {
         "run_dir": str(run_dir.relative_to(out)),
         "closed_loop_cost": float(summary["closed_loop_cost"]),
         "J": summary["J"],
         "S": summary["S"],
-        "steps_to_1e-3": steps_to(x),
+        "steps_to_1e-3": steps_to(x, target=target),
         "feasible": bool(summary["feasible"]),
         "fallbacks": int(summary["fallbacks"]),
         "solve_time_median_s": summary.get("solve_time_median_s"),
@@ -84,12 +92,13 @@ def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
     out : Path
         The comparison folder (created).
     methods : list of str
-        Checked with :func:`check_methods`.
+        Checked with :func:`check_methods` (for a scenario with setpoints, those that track them).
     show_progress : bool
         A progress bar per run.
     on_method : callable (method, entry), optional
         Called after each method's run.
     """
+    check_methods(methods, setpoints=bool(scenario.setpoints))
     check_out(out, methods)
     design_data = None
     entries: dict[str, dict] = {}
@@ -135,7 +144,9 @@ def comparison_rows(data: dict) -> list[list[str]]:
 
 
 COMPARISON_HEADER = ["method", "verdict", "feasible", "fallbacks", "cost", "/ central", "k to 1e-3", "QP us"]
-COMPARISON_LEGEND = ("verdict: ok, or the failures found (see each run's summary.json); feasible: every QP solved; cost: closed-loop sum of x'Qx + u'Ru; / central: that cost over the "
-                     "centralised one; k to 1e-3: first k with ||x(k)||_inf < 1e-3; QP us: median solve time")
+COMPARISON_LEGEND = ("verdict: ok, or the failures found (see each run's summary.json); feasible: every QP solved; "
+                     "cost: closed-loop sum of x'Qx + u'Ru (around the targets applied, with setpoints); / central: "
+                     "that cost over the centralised one; k to 1e-3: first k with ||x(k) - x_s||_inf < 1e-3 (x_s the "
+                     "last target, the origin without setpoints); QP us: median solve time")
 
 

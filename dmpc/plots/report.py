@@ -13,6 +13,11 @@ Figures written (PNG, 120 dpi):
 - ``fig2_states.png``: the state components of each subsystem over k.
 - ``fig3_inputs.png``: the inputs u_i(k) with the bounds of U_i.
 - ``fig4_cost.png``: J(k), on a log scale when it spans more than two decades.
+
+A run that tracked setpoints also shows, in figures 2 and 3, the target applied at each step
+(dashed) and the setpoint requested (dotted, where not free), and in figure 4 the steps where the
+request changed (faint vertical lines); its terminal boxes in figure 1 lie around the targets
+(:mod:`dmpc.plots.targets`).
 - ``fig5_S.png``: S(x(k)) = sum_i ||x_i(k)||^2 / |N_i|.
 
 On a comparison folder (``comparison.json`` from ``dmpc compare``), :func:`draw_comparison`
@@ -42,8 +47,9 @@ from dmpc.core.quantities import Quantity, time_axis, time_label
 from dmpc.core.system import box_hull
 from dmpc.methods import DEFAULT_METHOD, METHOD_NAMES
 from dmpc.plots.style import bound_lines, panel_grid, positive, use_log
+from dmpc.plots.targets import Tracked, draw_targets, mark_changes, unique_legend
 from dmpc.records.files import COMPARISON
-from dmpc.records.reader import RunFolderNotReadable, read_run
+from dmpc.records.reader import RunFolderNotReadable, read_run, tracking_arrays
 
 FIGURES = ("fig1_terminal_sets", "fig2_states", "fig3_inputs", "fig4_cost", "fig5_S")
 MAX_PANELS = 8
@@ -96,6 +102,8 @@ class RunData:
         Per subsystem, the names, units and bounds of its states and inputs.
     dt : float or None
         The scenario's sampling period in seconds (None: the axes count steps).
+    tracked : Tracked or None
+        The setpoints requested and the targets applied; None when the run requested nothing.
     """
 
     path: Path
@@ -117,6 +125,7 @@ class RunData:
     states: list[tuple[Quantity, ...]]
     inputs: list[tuple[Quantity, ...]]
     dt: float | None = None
+    tracked: Tracked | None = None
 
     @property
     def time_label(self) -> str:
@@ -141,6 +150,13 @@ class RunData:
         """Columns of subsystem ``i`` in the global input."""
         start = sum(self.m[:i])
         return slice(start, start + self.m[i])
+
+    def box_centres(self) -> np.ndarray | None:
+        """The centres of the terminal boxes in the plant's coordinates, shape (K+1, n): alpha, or
+        with setpoints alpha around the target of its step (NaN where that target is unknown)."""
+        if self.alpha is None or self.tracked is None:
+            return self.alpha
+        return self.alpha + self.tracked.box_offsets()
 
 
 def is_comparison_folder(path: Path) -> bool:
@@ -230,6 +246,7 @@ def load_run(path, notes: list[str] | None = None) -> RunData:
         P = [np.atleast_2d(np.asarray(p, float)) for p in design["P"]]
     steps = u.shape[0]
     states, inputs = records.quantities()
+    tracked = Tracked.of(tracking_arrays(arrays, steps, x.shape[1], u.shape[1]))
     return RunData(path=records.path, method=str(summary.get("method") or "run"),
                    scenario=str(summary.get("scenario") or (scenario.name if scenario is not None else records.path.name)),
                    names=names, n=records.n, m=records.m, lower=lower, upper=upper, P=P, x=x, u=u,
@@ -238,7 +255,7 @@ def load_run(path, notes: list[str] | None = None) -> RunData:
                    J=_series(arrays, "J", steps, summary.get("J")),
                    S=_series(arrays, "S", x.shape[0], summary.get("S")),
                    states=[states[name] for name in names], inputs=[inputs[name] for name in names],
-                   dt=records.dt)
+                   dt=records.dt, tracked=tracked)
 
 
 @dataclass
@@ -404,15 +421,16 @@ class PlaneSet:
 
 def _draw_boxes(ax, run: RunData, i: int, cmap, norm, label: str) -> bool:
     """Terminal boxes of subsystem ``i`` over k; False when the run has none."""
-    if run.alpha is None or run.beta is None:
+    centres = run.box_centres()
+    if centres is None or run.beta is None:
         return False
     from matplotlib.patches import Rectangle
 
     cols = run.state_slice(i)
-    t = run.times(run.alpha.shape[0])
+    t = run.times(centres.shape[0])
     drawn = False
-    for k in range(run.alpha.shape[0]):
-        centre, radius = run.alpha[k, cols][:2], run.beta[k]
+    for k in range(centres.shape[0]):
+        centre, radius = centres[k, cols][:2], run.beta[k]
         if not (np.isfinite(centre).all() and np.isfinite(radius)) or radius < 0:
             continue
         ax.add_patch(Rectangle(centre - radius, 2 * radius, 2 * radius, fill=False, lw=1.0, alpha=0.85,
@@ -463,8 +481,9 @@ def _draw_interval(ax, spec: PlaneSet, i: int, cmap, norm, label: str) -> None:
     run = spec.run
     cols = run.state_slice(i)
     t = run.times(run.x.shape[0])
-    if spec.boxes and run.alpha is not None and run.beta is not None:
-        centre = run.alpha[:, cols][:, 0]
+    centres = run.box_centres()
+    if spec.boxes and centres is not None and run.beta is not None:
+        centre = centres[:, cols][:, 0]
         ax.vlines(t, centre - run.beta, centre + run.beta, colors=[cmap(norm(v)) for v in t], lw=3, alpha=0.6,
                   label="terminal interval")
     ax.plot(t, run.x[:, cols][:, 0], color=spec.color, linestyle=spec.linestyle, marker=spec.marker, label=label)
@@ -488,6 +507,13 @@ def _colorbar(fig, axes, cmap, norm, label: str) -> None:
     bar.set_label(f"{label} (colour of the terminal sets)")
 
 
+def _box_label(run: RunData) -> str:
+    """The terminal box in the legend: around alpha, or with setpoints around the target plus alpha."""
+    if run.tracked is None:
+        return "box $\\|x_i - \\alpha_i(k)\\|_\\infty \\leq \\beta(k)$"
+    return "box $\\|x_i - x_{s,i}(k) - \\alpha_i(k)\\|_\\infty \\leq \\beta(k)$ ($x_s$: target)"
+
+
 def _fig1_panel(ax, specs: list[PlaneSet], i: int, cmap, norm) -> list[str]:
     """One subsystem's panel; returns the methods that had no terminal set to draw."""
     missing = []
@@ -498,8 +524,7 @@ def _fig1_panel(ax, specs: list[PlaneSet], i: int, cmap, norm) -> list[str]:
         if spec.run.n[i] == 1:
             _draw_interval(ax, spec, i, cmap, norm, label)
             continue
-        has_box = spec.boxes and _draw_boxes(ax, spec.run, i, cmap, norm,
-                                             "box $\\|x_i - \\alpha_i(k)\\|_\\infty \\leq \\beta(k)$" + suffix)
+        has_box = spec.boxes and _draw_boxes(ax, spec.run, i, cmap, norm, _box_label(spec.run) + suffix)
         has_ell = spec.ellipses and _draw_ellipses(ax, spec, i, cmap, norm,
                                                    "ellipse $x_i^T P_i x_i \\leq r_i$" + suffix)
         if not (has_box or has_ell):
@@ -564,6 +589,17 @@ def _signal_panel(ax, runs: list[tuple[RunData, str]], i: int, j: int, kind: str
             series = np.append(series, series[-1:])
         draw = dict(drawstyle="steps-post") if kind == "u" else {}
         ax.plot(run.times(series.size), series, label=method, **style, **draw)
+    if len(runs) == 1 and runs[0][0].tracked is not None:
+        _panel_targets(ax, runs[0][0], i, j, kind)
+
+
+def _panel_targets(ax, run: RunData, i: int, j: int, kind: str) -> None:
+    """Component ``j`` of subsystem ``i``'s applied target (dashed) and setpoint (dotted, where
+    requested), each held over its step."""
+    assert run.tracked is not None
+    setpoint, target = run.tracked.columns(kind)
+    cols = run.state_slice(i) if kind == "x" else run.input_slice(i)
+    draw_targets(ax, run.times(target.shape[0] + 1), setpoint[:, cols][:, j], target[:, cols][:, j])
 
 
 def _blocks_per_row(components: int, subsystems: int) -> int:
@@ -593,10 +629,12 @@ def _signal_figure(plt, runs: list[tuple[RunData, str]], kind: str, title: str, 
                            sharex=True)
     slots = sorted(((i, j) for i in range(shown) for j in range(dims[i])), key=lambda slot: index[slot])
     full = ref.n if kind == "x" else ref.m
+    tracked = len(runs) == 1 and ref.tracked is not None  # one legend below, for the targets' lines too
     legend_done = False
     for ax, (i, j) in zip(axes, slots):
         _signal_panel(ax, runs, i, j, kind)
-        if bounds and bound_lines(ax, *_bounds(ref, kind, i, j), label="bounds") and not legend_done and len(runs) == 1:
+        bounded = bounds and bound_lines(ax, *_bounds(ref, kind, i, j), label="bounds")
+        if bounded and not legend_done and len(runs) == 1 and not tracked:
             ax.legend(loc="best", framealpha=0.85)
             legend_done = True
         ax.axhline(0, color="grey", lw=0.5)
@@ -604,29 +642,39 @@ def _signal_figure(plt, runs: list[tuple[RunData, str]], kind: str, title: str, 
         ax.set_ylabel((ref.states if kind == "x" else ref.inputs)[i][j].label)
         more = f" (first {MAX_COMPONENTS} of {full[i]})" if j == 0 and full[i] > MAX_COMPONENTS else ""
         ax.set_title(f"subsystem {ref.names[i]}{more}")
-    if len(runs) > 1:
-        handles, labels = axes[0].get_legend_handles_labels()
+    if len(runs) > 1 or tracked:
+        handles, labels = unique_legend(axes) if tracked else axes[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6), framealpha=0.9)
     fig.suptitle(title + _panel_note(ref.M))
     return fig
 
 
 # ----------------------------------------------------------------------------- figures 4 and 5
-def _series_figure(plt, series: list[tuple[str, np.ndarray, dict, str]], ylabel: str, title: str, ref: RunData):
-    """One axis, one line per (label, values, style, method), over the time of ``ref``'s axes."""
+def _series_figure(plt, series: list[tuple[str, np.ndarray, dict, str]], ylabel: str, title: str, ref: RunData,
+                   changes: np.ndarray | None = None):
+    """One axis, one line per (label, values, style, method), over the time of ``ref``'s axes;
+    ``changes``: steps (c,) marked by faint vertical lines (where the setpoint changed)."""
     fig, ax = plt.subplots(figsize=(6.4, 4.0), layout="constrained")
     log = use_log([values for _, values, _, _ in series])
     for index, (label, values, style, _) in enumerate(series):
         y = positive(values) if log else values
         ax.plot(ref.times(len(y)), y, label=label, **_layered(style, index, len(series)))
+    marked = changes is not None and changes.size > 0
+    if marked:
+        mark_changes(ax, ref.times(int(changes.max()) + 1)[changes])
     if log:
         ax.set_yscale("log")
     ax.set_xlabel(ref.time_label)
     ax.set_ylabel(ylabel + (" (log scale)" if log else ""))
     ax.set_title(title)
-    if len(series) > 1 or series[0][0]:
+    if len(series) > 1 or series[0][0] or marked:
         ax.legend(loc="best", framealpha=0.85)
     return fig
+
+
+def setpoint_changes(run: RunData) -> np.ndarray | None:
+    """The steps where ``run``'s setpoint request changed (c,), or None without setpoints."""
+    return run.tracked.changes() if run.tracked is not None else None
 
 
 def _cost_label(method: str, entry: dict) -> str:
@@ -663,7 +711,7 @@ def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path
         paths.append(_save(_signal_figure(plt, sets, "u", f"{head}: inputs and their bounds"), folder, FIGURES[2]))
         style = dict(_style(run.method), color="C0")
         paths.append(_save(_series_figure(plt, [("", run.J, style, run.method)], "$J(k) = \\sum_i J_i^*(k)$",
-                                          f"{head}: optimal cost J(k)", run), folder, FIGURES[3]))
+                                          f"{head}: optimal cost J(k)", run, setpoint_changes(run)), folder, FIGURES[3]))
         paths.append(_save(_series_figure(plt, [("", run.S, style, run.method)],
                                           "$S(x(k)) = \\sum_i \\|x_i(k)\\|^2 / |N_i|$", f"{head}: S(x(k))", run),
                            folder, FIGURES[4]))

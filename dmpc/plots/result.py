@@ -2,8 +2,9 @@
 
 Drawn by the same code as ``dmpc report`` (:mod:`dmpc.plots.report`): axes in seconds when the
 scenario has ``dt`` (else steps), labelled with the quantities' names and units, the bounds
-dashed. The figures are made with pyplot, so a notebook shows them; a script saves them with
-``fig.savefig``.
+dashed; with setpoints, the targets applied dashed, the setpoints dotted and the steps where they
+changed marked on the cost. The figures are made with pyplot, so a notebook shows them; a script
+saves them with ``fig.savefig``.
 """
 from __future__ import annotations
 
@@ -12,7 +13,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from dmpc.plots.report import STYLE, RunData, _series_figure, _signal_figure, _style
+from dmpc.plots.report import STYLE, RunData, _series_figure, _signal_figure, _style, setpoint_changes
+from dmpc.plots.targets import Tracked
+
+TRACKING = ("setpoint", "setpoint_u", "reference", "reference_u", "target", "target_u")
 
 
 def run_data(result) -> RunData:
@@ -30,18 +34,35 @@ def run_data(result) -> RunData:
                    u=np.hstack([result.u[name] for name in names]),
                    alpha=np.hstack([result.alpha[name] for name in names]), beta=np.asarray(result.beta, float),
                    r=None, J=np.asarray(result.J, float), S=S if S.shape == (x.shape[0],) else np.full(x.shape[0], np.nan),
-                   states=states, inputs=inputs, dt=result.dt)
+                   states=states, inputs=inputs, dt=result.dt, tracked=tracked_of(result))
+
+
+def tracked_of(result) -> Tracked | None:
+    """The Result's setpoints and targets stacked over its subsystems (as trajectory.npz holds
+    them), or None when the run requested nothing."""
+    names = list(result.names)
+    mappings = {key: getattr(result, key) for key in TRACKING}
+    if not all(all(name in mapping for name in names) for mapping in mappings.values()):
+        return None
+    return Tracked.of({key: np.hstack([mapping[name] for name in names]) for key, mapping in mappings.items()})
 
 
 def plot_result(result, bounds: bool = True) -> dict:
     """``{"states": Figure, "inputs": Figure, "cost": Figure}`` for a Result."""
+    import matplotlib
     import matplotlib.pyplot as plt
 
     run = run_data(result)
     head = f"{run.scenario}, {run.method}"
     with plt.rc_context(cast(Any, STYLE)):  # matplotlib types its keys as a Literal of every rc name
-        return {"states": _signal_figure(plt, [(run, run.method)], "x", f"{head}: states", bounds),
-                "inputs": _signal_figure(plt, [(run, run.method)], "u", f"{head}: inputs", bounds),
-                "cost": _series_figure(plt, [("J(k)", run.J, dict(_style(run.method), color="C0"), run.method)],
-                                       "$J(k) = \\sum_i J_i^*(k)$",
-                                       f"cost, closed loop {result.cost:.4g} (verdict {result.verdict})", run)}
+        figures = {"states": _signal_figure(plt, [(run, run.method)], "x", f"{head}: states", bounds),
+                   "inputs": _signal_figure(plt, [(run, run.method)], "u", f"{head}: inputs", bounds),
+                   "cost": _series_figure(plt, [("J(k)", run.J, dict(_style(run.method), color="C0"), run.method)],
+                                          "$J(k) = \\sum_i J_i^*(k)$",
+                                          f"cost, closed loop {result.cost:.4g} (verdict {result.verdict})", run,
+                                          setpoint_changes(run))}
+        interactive = matplotlib.is_interactive()
+    # a backend loaded by the first figure (a notebook's) may have turned interactive mode on, which
+    # the context would undo on leaving: a notebook would then show no later call's figures
+    matplotlib.interactive(interactive)
+    return figures

@@ -360,6 +360,9 @@ def launch(prepared: Prepared, out: Path, run_id: str, startup_timeout: float = 
         if plant_timeout is not None:
             stderr_console().print(f"waiting for the plant: connect it to {endpoint} with run id {run_id} "
                                    f"(docs/protocol.md)")
+        elif show_progress:
+            stderr_console().print(f"run id {run_id}: the coordinator listens on {endpoint} (dmpc setpoint, "
+                                   "dmpc watch --connect)")
         result = _supervise(children, prepared, out, show_progress, policy)
         if fixed is not None or not _port_clash(result, children[0].role, out) or attempt == PORT_ATTEMPTS - 1:
             return result

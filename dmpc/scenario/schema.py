@@ -847,6 +847,9 @@ def _check_setpoints(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, 
     if scn.setpoints and scn.options.method not in SETPOINT_METHODS:
         raise SpecError("setpoints", f"the method '{scn.options.method}' does not track setpoints; use "
                                      f"{' or '.join(SETPOINT_METHODS)} (options.method)")
+    if scn.setpoints and scn.options.tube == "robust":
+        raise SpecError("setpoints", "setpoints are not tracked with options.tube: robust (the reference "
+                                     "governor's test of a target does not include the tube's tightening)")
     for e, spec in enumerate(scn.setpoints):
         path = f"setpoints[{e}]"
         _check_name(spec.subsystem, index, f"{path}.subsystem")

@@ -7,13 +7,15 @@ role           may publish (put, liveliness token)    may subscribe to
 =============  =====================================  ==========================================
 agent-I        plan/I, ready/I; token alive/agent-I   release, plan/J for J in N_I, control,
                                                       alive/*
-coordinator    release, control, inputs, telemetry/*; plan/*, ready/*, state/*, alive/*
+coordinator    release, control, inputs, telemetry/*,  plan/*, ready/*, state/*, setpoint/*,
+               setpoint-answer/*;                     alive/*
                token alive/coordinator
                (relays as a router: plan/*, alive/*)
 plant          state/plant; token alive/plant         inputs, control, alive/*
 sensor-I       state/sensor-I; token alive/sensor-I   inputs, control, alive/*
 router         relays: everything under dmpc/R/**     everything under dmpc/R/**
 observer       nothing                                telemetry/*, alive/* (``dmpc watch``)
+operator       setpoint/*                             setpoint-answer/*, alive/* (``dmpc setpoint``)
 =============  =====================================  ==========================================
 
 Subjects are bound to certificate common names (the roles of ``dmpc.security.certs``), the
@@ -83,10 +85,11 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     # plans and liveliness tokens, which every agent already checked at that first hop. So the
     # coordinator may bring in plans and tokens of any role; it is the run's root of trust anyway.
     states = keys.state_prefix(R)
+    setpoints, answers = keys.setpoint_prefix(R), keys.setpoint_answer(R, "*")
     role(keys.COORDINATOR_ROLE, [keys.release(R), keys.control(R), keys.inputs(R), keys.plan(R, "*"),
-                                 keys.telemetry_prefix(R)],
-         [keys.plan(R, "*"), keys.ready(R, "*"), states], [alive_all],
-         [keys.plan(R, "*"), keys.ready(R, "*"), states])
+                                 keys.telemetry_prefix(R), answers],
+         [keys.plan(R, "*"), keys.ready(R, "*"), states, setpoints], [alive_all],
+         [keys.plan(R, "*"), keys.ready(R, "*"), states, setpoints])
     # the plant, or one sensor per subsystem, may publish its own state and nothing else
     for source in keys.state_sources(names):
         subs = [keys.inputs(R), keys.control(R)]
@@ -104,6 +107,17 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     subjects.append({"id": "observer", "cert_common_names": ["observer"]})
     policies.append({"id": "observer", "rules": ["observer subscribe", "observer watch", "observer receive",
                                                  "declarations"], "subjects": ["observer"]})
+    # an operator (a supervisory program) may request setpoints and hear the answers, nothing else;
+    # any sender name under its certificate: it names the program, the certificate the role
+    rules.extend([_rule("operator put", "ingress", ["put"], [setpoints]),
+                  _rule("operator subscribe", "ingress", ["declare_subscriber"], [answers]),
+                  _rule("operator watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
+                        [alive_all]),
+                  _rule("operator receive", "egress", ["put"], [answers])])
+    subjects.append({"id": keys.OPERATOR_ROLE, "cert_common_names": [keys.OPERATOR_ROLE]})
+    policies.append({"id": keys.OPERATOR_ROLE, "rules": ["operator put", "operator subscribe", "operator watch",
+                                                         "operator receive", "declarations"],
+                     "subjects": [keys.OPERATOR_ROLE]})
     rules.extend([_rule("relay in", "ingress", _ALL, [root]), _rule("relay out", "egress", _ALL, [root])])
     subjects.append({"id": "router", "cert_common_names": ["router"]})
     policies.append({"id": "router", "rules": ["relay in", "relay out"], "subjects": ["router"]})

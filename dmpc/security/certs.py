@@ -1,7 +1,8 @@
 """Certificates for TLS links with mutual authentication: one CA, one certificate per role.
 
 Roles are ``router``, ``coordinator``, ``plant``, ``agent-<name>`` and ``sensor-<name>`` (the
-liveliness role names of ``bus.keys``), and ``observer`` for ``dmpc watch`` (it may only listen).
+liveliness role names of ``bus.keys``), ``observer`` for ``dmpc watch`` (it may only listen), and
+``operator`` for ``dmpc setpoint`` (it may only request setpoints and hear the answers).
 A process that hosts the coordinator and the simulated plant together uses ``coordinator``.
 Each certificate's common name is its role: Zenoh's access control binds its
 subjects to these names (``cert_common_names``). Every certificate carries the subject

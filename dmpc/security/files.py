@@ -18,10 +18,10 @@ CA_KEY = "ca.key"
 
 def role_names(agent_names: Iterable[str]) -> list[str]:
     """``router``, ``coordinator``, ``plant``, ``agent-<name>`` and ``sensor-<name>`` for every
-    subsystem, and ``observer``, in that order."""
+    subsystem, ``observer`` and ``operator``, in that order."""
     names = list(agent_names)
     return (["router", keys.COORDINATOR_ROLE, keys.PLANT_ROLE] + [keys.agent_role(name) for name in names]
-            + [keys.sensor_role(name) for name in names] + ["observer"])
+            + [keys.sensor_role(name) for name in names] + ["observer", keys.OPERATOR_ROLE])
 
 
 def cert_path(directory: str | Path, role: str) -> Path:

@@ -29,6 +29,7 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from dmpc.core.system import CoupledSystem, LinearSet, stack_sets
 
@@ -38,6 +39,16 @@ DEFAULT_MARGIN = 0.05
 REGULARISATION = 1e-9
 """Added to the weights of the steady-state QPs (times their largest diagonal entry), so that the
 target is unique where Q is only semidefinite on directions the request leaves free."""
+
+MARGIN_ROOM = 1e-6
+"""The steady-state QPs keep targets this much further inside than the margin: an interior-point
+solution meets its constraints only to its tolerance, so the margin holds as stated."""
+
+STEADY_TOLERANCE = 1e-13
+"""A target leaves x = A x + B u by at most this (relative to its largest entry)."""
+
+MET_TOLERANCE = 1e-7
+"""A requested component counts as met when the target is within this (relative) of it."""
 
 PIN_TOLERANCE = 1e-9
 """How far (relative) the second stage may move a component the first stage settled."""
@@ -168,6 +179,10 @@ class TargetSpace:
             top = max(top, float((self._gu @ u).max()))
         return top
 
+    def input_gauge(self, u: np.ndarray) -> float:
+        """gauge_U(u) for u (m,): 0 at the origin, 1 on the boundary of U."""
+        return max(0.0, float((self._gu @ u).max())) if self._gu.shape[0] else 0.0
+
     def scale(self, x: np.ndarray, u: np.ndarray) -> float:
         """lambda = 1 - gauge: the terminal set around (x, u) is x + lambda X^f."""
         return 1.0 - self.gauge(x, u)
@@ -181,9 +196,10 @@ class TargetSpace:
 
     @cached_property
     def _inside(self) -> tuple[sp.csc_matrix, np.ndarray]:
-        """Rows G w <= g for gauge <= 1 - margin on w = [x, u]."""
+        """Rows G w <= g for gauge <= 1 - margin on w = [x, u], less MARGIN_ROOM for the solver's
+        accuracy and the projection onto the steady states that follows."""
         G = sp.block_diag([self._gx, self._gu], format="csc")
-        return G, np.full(G.shape[0], 1.0 - self.margin)
+        return G, np.full(G.shape[0], 1.0 - self.margin - MARGIN_ROOM)
 
     @cached_property
     def _weights(self) -> tuple[np.ndarray, float]:
@@ -212,6 +228,8 @@ class TargetSpace:
         wanted = np.concatenate([x_req, u_req])
         pinned = ~np.isnan(wanted)
         w = self._solve(pinned, wanted, exact=True)
+        if w is not None and np.any(np.abs(w[pinned] - wanted[pinned]) > MET_TOLERANCE * np.maximum(1.0, np.abs(wanted[pinned]))):
+            w = None  # the solver's answer misses the request: no steady state meets it exactly
         reachable = w is not None
         if w is None:
             nearest = self._solve(pinned, wanted, exact=False)
@@ -220,9 +238,20 @@ class TargetSpace:
             w = self._solve(pinned, nearest, exact=True, tolerance=PIN_TOLERANCE)
             if w is None:  # the pinned band is too thin for the solver: keep the nearest one
                 w = nearest
+        w = self._onto_steady_states(w)
         x, u = w[: self.n], w[self.n:]
         gap = np.where(pinned, w - np.where(pinned, wanted, 0.0), np.nan)
         return Target(x, u, self.scale(x, u), gap[: self.n], gap[self.n:], reachable)
+
+    def _onto_steady_states(self, w: np.ndarray) -> np.ndarray:
+        """w = [x, u] (n + m,) moved by the least amount onto x = A x + B u exactly: an interior-point
+        solution meets the equality only to its tolerance, and the controllers treat the target as an
+        exact steady state (an error there is an offset of the tracking)."""
+        residual = self._steady @ w
+        if not np.any(np.abs(residual) > STEADY_TOLERANCE * max(1.0, float(np.abs(w).max()))):
+            return w
+        correction = spla.lsqr(self._steady, residual, atol=1e-15, btol=1e-15, iter_lim=10 * w.size)[0]
+        return w - correction
 
     def _solve(self, pinned: np.ndarray, values: np.ndarray, exact: bool, tolerance: float = 0.0) -> np.ndarray | None:
         """One steady-state QP over w = [x, u] (n + m,); None when it is infeasible.
@@ -270,7 +299,7 @@ class TargetSpace:
         status = str(result.status)
         if status in ("Solved", "AlmostSolved"):
             return np.asarray(result.x, float)
-        if "Infeasible" in status:
+        if exact:  # infeasible, or too close to it for the solver to settle: the request is not met as asked
             return None
         raise RuntimeError(f"the steady-state QP ended with status {status}")
 

@@ -59,17 +59,19 @@ class Tracker:
         X^f of the design.
     closed_loop : ndarray or sparse matrix, shape (n, n)
         A + BK.
+    gain : ndarray or sparse matrix, shape (m, n)
+        K, block diagonal.
     entries : iterable of SetpointEntry
         The scenario's schedule.
     margin : float
         Targets keep this fraction of every bound free (:class:`TargetSpace`).
     """
 
-    def __init__(self, system: CoupledSystem, terminal: TerminalSet, closed_loop,
+    def __init__(self, system: CoupledSystem, terminal: TerminalSet, closed_loop, gain,
                  entries: tuple[SetpointEntry, ...] = (), margin: float = DEFAULT_MARGIN) -> None:
         self.system = system
         self.space = TargetSpace(system, margin)
-        self.governor = ReferenceGovernor(self.space, terminal, closed_loop)
+        self.governor = ReferenceGovernor(self.space, terminal, closed_loop, gain)
         self.schedule = Schedule(system, entries)
         self.applied = Target.origin(system.n, system.m)
         self.theta = 1.0

@@ -6,6 +6,11 @@ shown: the plots show the run up to k, the readout the values at k, and the agen
 the graph the agents' states at k. While the slider stays at the newest step it follows the
 run as it goes; the replay button plays the run on from the slider's step (from the start when
 the slider is at the end).
+
+Once a step arrives with targets (the run tracks setpoints), each subsystem's state and input
+plots show the target applied (dashed) and the setpoint requested (dotted, where not free), each
+in its component's colour; before that, and in a run without setpoints, those lines and their
+legend entries stay hidden.
 """
 from __future__ import annotations
 
@@ -14,7 +19,17 @@ import html
 import math
 
 from bokeh.layouts import column, gridplot, row
-from bokeh.models import ColumnDataSource, Div, HoverTool, InlineStyleSheet, Range1d, Slider, Span, Toggle
+from bokeh.models import (
+    ColumnDataSource,
+    Div,
+    HoverTool,
+    InlineStyleSheet,
+    LegendItem,
+    Range1d,
+    Slider,
+    Span,
+    Toggle,
+)
 from bokeh.palettes import Category10_10
 from bokeh.plotting import figure
 
@@ -36,6 +51,9 @@ TICK_MS = 500  # the page is redrawn at most this often: each redraw costs the b
 PLAY_MS = 150
 WINDOW = 20_000  # rows a plot holds at most: a longer run shows its latest steps
 BOUND = dict(line_color="#d62728", line_dash="dashed", line_width=1.5)
+SIGNAL_HEIGHT = 255  # a subsystem's plots: their legend takes a row below
+TARGET = dict(line_dash="dashed", line_width=1.5)
+SETPOINT = dict(line_dash="dotted", line_width=3, line_alpha=0.9)
 TABLES = """
 table.dmpc-agents, table.dmpc-readout, .dmpc-summary table {border-collapse: collapse; font-size: 10pt}
 table.dmpc-agents td, table.dmpc-agents th {border-bottom: 1px solid #ddd; padding: 3px 10px; text-align: left}
@@ -43,8 +61,8 @@ table.dmpc-readout td, table.dmpc-readout th, .dmpc-summary td {padding: 1px 12p
 """
 
 
-def _figure(title: str, x_range, y_axis_type: str = "linear"):
-    fig = figure(title=title, height=230, width=360, x_axis_label="k", y_axis_type=y_axis_type, x_range=x_range,
+def _figure(title: str, x_range, y_axis_type: str = "linear", height: int = 230):
+    fig = figure(title=title, height=height, width=360, x_axis_label="k", y_axis_type=y_axis_type, x_range=x_range,
                  tools="pan,wheel_zoom,box_zoom,reset,save", toolbar_location="right")
     fig.title.text_font_size = "11pt"
     return fig
@@ -78,6 +96,9 @@ class WatchPage:
         self.meta = None
         self.snap = None
         self.history: AgentHistory | None = None
+        # (subsystem, 'x' or 'u', 'target' or 'setpoint', its lines and legend item): shown once tracked
+        self.tracking: list[tuple[int, str, str, list]] = []
+        self.tracked = False  # a step with targets has arrived: their sources are filled from then on
         self._play = None
         # the Divs that change with every step have a fixed size: new text then redraws the Div
         # alone, not the whole layout
@@ -149,6 +170,7 @@ class WatchPage:
 
         self.states: list[ColumnDataSource] = []
         self.inputs: list[ColumnDataSource] = []
+        self.targets: list[ColumnDataSource] = []
         panels = []
         for i, sub in enumerate(meta.subsystems[:SHOWN]):
             # columns x1 … and u1 … whatever the scenario calls them: its names go in the legends
@@ -156,7 +178,7 @@ class WatchPage:
             inputs = ColumnDataSource({"k": [], **{f"u{j + 1}": [] for j in range(sub.m)}}, name=f"inputs-{sub.name}")
             self.states.append(states)
             self.inputs.append(inputs)
-            fig_x = _figure(f"subsystem {sub.name}: states x(k)", x_range)
+            fig_x = _figure(f"subsystem {sub.name}: states x(k)", x_range, height=SIGNAL_HEIGHT)
             for j in range(sub.n):
                 fig_x.line("k", f"x{j + 1}", source=states, color=Category10_10[j % 10], line_width=2,
                            legend_label=sub.state_label(j))
@@ -165,16 +187,19 @@ class WatchPage:
                     if math.isfinite(bound):
                         bound_line(fig_x, bound)
             fig_u = _figure(f"subsystem {sub.name}: inputs u(k)" + ("" if sub.input_is_box else " (U: bounding box)"),
-                            x_range)
+                            x_range, height=SIGNAL_HEIGHT)
             for j in range(sub.m):
                 fig_u.step("k", f"u{j + 1}", source=inputs, mode="after", color=Category10_10[j % 10], line_width=2,
                            legend_label=sub.input_label(j))
                 for bound in (sub.input_lower[j], sub.input_upper[j]):
                     if math.isfinite(bound):
                         bound_line(fig_u, bound)
+            targets = ColumnDataSource(self._target_columns([], sub, 0, 0), name=f"targets-{sub.name}")
+            self.targets.append(targets)
+            self._target_lines(fig_x, targets, i, "x", sub.n)
+            self._target_lines(fig_u, targets, i, "u", sub.m)
             for fig in (fig_x, fig_u):
-                fig.legend.label_text_font_size = "8pt"
-                fig.legend.location = "top_right"
+                _legend_below(fig)
             panels += [fig_x, fig_u]
         for fig in [fig_cost, fig_terminal] + panels:
             cursor = Span(location=0, dimension="height", line_color="#555555", line_dash="dotted", visible=False)
@@ -189,6 +214,20 @@ class WatchPage:
             gridplot(panels, ncols=4, toolbar_location="right", merge_tools=True),
         ]
         self.built = True
+
+    def _target_lines(self, fig, source: ColumnDataSource, i: int, kind: str, count: int) -> None:
+        """The target (dashed) and setpoint (dotted) of each component of subsystem ``i``, held over
+        each step; hidden, with their legend entries, until they have something to show."""
+        lines: dict[str, list] = {"target": [], "setpoint": []}
+        for what, style in (("target", TARGET), ("setpoint", SETPOINT)):  # the setpoints on top
+            for j in range(count):
+                lines[what].append(fig.step("k", f"{what}_{kind}{j + 1}", source=source, mode="after",
+                                            color=Category10_10[j % 10], visible=False, **style))
+        for what, label in (("target", "target (applied)"), ("setpoint", "setpoint")):
+            item = LegendItem(label=label, renderers=lines[what], visible=False,
+                              name=f"legend-{what}-{kind}-{self.meta.subsystems[i].name}")
+            fig.legend.items.append(item)
+            self.tracking.append((i, kind, what, [*lines[what], item]))
 
     # -- data ------------------------------------------------------------------------------------
     def _terminal_columns(self, rows: list[StateRow]) -> dict[str, list]:
@@ -209,7 +248,7 @@ class WatchPage:
         return out
 
     def _step_columns(self, rows: list[StepRow]) -> list[dict]:
-        """Data for the cost plot and each subsystem's input plot."""
+        """Data for the cost plot, each subsystem's input plot and each subsystem's targets."""
         ks = [r.k for r in rows]
         out = [{"k": ks, "J": [r.J for r in rows]}]
         for sub, us in zip(self.meta.subsystems[:SHOWN], self.meta.input_slices()):
@@ -217,7 +256,23 @@ class WatchPage:
             for j in range(sub.m):
                 data[f"u{j + 1}"] = [r.u[us.start + j] for r in rows]
             out.append(data)
-        return out
+        return out + (self._targets_columns(rows) if self.tracked else [])
+
+    def _targets_columns(self, rows: list[StepRow]) -> list[dict]:
+        """Data for each subsystem's targets and setpoints."""
+        return [self._target_columns(rows, sub, xs.start, us.start)
+                for sub, xs, us in zip(self.meta.subsystems[:SHOWN], self.meta.state_slices(), self.meta.input_slices())]
+
+    @staticmethod
+    def _target_columns(rows: list[StepRow], sub, x0: int, u0: int) -> dict[str, list]:
+        """One subsystem's targets and setpoints over ``rows`` (NaN before anything was requested);
+        its states start at column ``x0`` of the global state, its inputs at ``u0``."""
+        data: dict[str, list] = {"k": [r.k for r in rows]}
+        for kind, count, start in (("x", sub.n, x0), ("u", sub.m, u0)):
+            for j in range(count):
+                for what in ("target", "setpoint"):
+                    data[f"{what}_{kind}{j + 1}"] = [_target_value(r, what, kind, start + j) for r in rows]
+        return data
 
     @staticmethod
     def _sync(sources: list[ColumnDataSource], rows: list, shown: int, target: int, columns) -> int:
@@ -254,6 +309,7 @@ class WatchPage:
             new_steps = self.step_rows  # those read before the description came, too
         if self.built:
             self.history.add(new_steps)
+            self._show_tracking(new_steps)
             last = self.state_ks[-1] if self.state_ks else 0
             self.slider.end = max(1, last)
             self.slider.disabled = not self.state_ks
@@ -262,6 +318,29 @@ class WatchPage:
             else:
                 self._refresh()
         self._update_text()
+
+    def _show_tracking(self, rows: list[StepRow]) -> None:
+        """Show the targets once a step has them, and a subsystem's setpoints once one of its
+        components was requested."""
+        tracked = [r.targets for r in rows if r.targets is not None]
+        if not tracked:
+            return
+        if not self.tracked:  # the targets' sources join the others where they are
+            self.tracked = True
+            shown = max(self.shown_steps, 0)
+            for source, data in zip(self.targets, self._targets_columns(self.step_rows[max(0, shown - WINDOW):shown])):
+                source.data = data
+        slices = {"x": self.meta.state_slices(), "u": self.meta.input_slices()}
+        for i, kind, what, models in self.tracking:
+            if models[0].visible:
+                continue
+            if what == "setpoint":
+                cols = slices[kind][i]
+                asked = (t.setpoint if kind == "x" else t.setpoint_u for t in tracked)
+                if not any(math.isfinite(v) for values in asked for v in values[cols]):
+                    continue
+            for model in models:
+                _set(model, "visible", True)
 
     def _on_slider(self, value: int) -> None:
         self.follow = value >= max((self.state_ks or [0])[-1], 1)
@@ -292,8 +371,8 @@ class WatchPage:
         n_steps = bisect.bisect_right(self.step_ks, k)
         self.shown_states = self._sync([self.terminal] + self.states, self.state_rows, self.shown_states, n_states,
                                        self._state_columns)
-        self.shown_steps = self._sync([self.cost] + self.inputs, self.step_rows, self.shown_steps, n_steps,
-                                      self._step_columns)
+        step_sources = [self.cost] + self.inputs + (self.targets if self.tracked else [])
+        self.shown_steps = self._sync(step_sources, self.step_rows, self.shown_steps, n_steps, self._step_columns)
         for cursor in self.cursors:
             cursor.location = k
             cursor.visible = not self.follow
@@ -376,6 +455,30 @@ class WatchPage:
         if not self.step_rows:
             return "waiting for the first step"
         return "running" if self.live else "incomplete (no summary.json yet)"
+
+
+def _legend_below(fig) -> None:
+    """The figure's legend in a row under its plot, where it hides none of the lines."""
+    legend = fig.legend[0]
+    legend.label_text_font_size = "8pt"
+    legend.orientation = "horizontal"
+    legend.location = "center"
+    legend.padding = legend.margin = 2
+    legend.spacing = 8
+    legend.glyph_width = 18
+    legend.click_policy = "hide"
+    fig.add_layout(legend, "below")
+
+
+def _target_value(row: StepRow, what: str, kind: str, column: int) -> float:
+    """Component ``column`` of the target (``what`` 'target') or setpoint of the states (``kind``
+    'x') or inputs of a step; NaN in a step without targets."""
+    t = row.targets
+    if t is None:
+        return math.nan
+    values = {("target", "x"): t.x, ("target", "u"): t.u, ("setpoint", "x"): t.setpoint,
+              ("setpoint", "u"): t.setpoint_u}[what, kind]
+    return values[column]
 
 
 def _set(model, attr: str, value) -> None:

@@ -36,8 +36,23 @@ class StateRow:
 
 
 @dataclass(frozen=True)
+class Targets:
+    """What step k tracked (docs/scenarios.md, "Setpoints: `setpoints`"): the target it applied and
+    the setpoint requested (NaN where free), for the states (n,) and the inputs (m,)."""
+
+    x: list[float]
+    u: list[float]
+    setpoint: list[float]
+    setpoint_u: list[float]
+
+
+@dataclass(frozen=True)
 class StepRow:
-    """What happened in step k (the fields of a ``steps.jsonl`` line that the page shows)."""
+    """What happened in step k (the fields of a ``steps.jsonl`` line that the page shows).
+
+    ``targets`` is None in a step before anything was requested (and in every step of a run
+    without setpoints), whose line has no targets.
+    """
 
     k: int
     u: list[float]
@@ -49,10 +64,19 @@ class StepRow:
     latency: list[float]
     step_time: float
     note: str
+    targets: Targets | None = None
 
 
 class BadStep(DmpcError, ValueError):
     """A step line that cannot be shown: missing fields or the wrong dimensions."""
+
+
+def parse_targets(line: dict) -> Targets | None:
+    """The targets of a ``steps.jsonl`` line, None when it has none (nothing requested yet)."""
+    if "target" not in line:
+        return None
+    return Targets(x=floats(line["target"]), u=floats(line["target_u"]), setpoint=floats(line["setpoint"]),
+                   setpoint_u=floats(line["setpoint_u"]))
 
 
 def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, StateRow]:
@@ -71,7 +95,8 @@ def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, Sta
                        fallback=[bool(f) for f in line["fallback"]],
                        fallback_reason=[str(r) for r in line["fallback_reason"]],
                        solve_time=floats(line["solve_time"]), latency=floats(line.get("latency") or []),
-                       step_time=number(line.get("step_time")), note=str(line.get("note") or ""))
+                       step_time=number(line.get("step_time")), note=str(line.get("note") or ""),
+                       targets=parse_targets(line))
         now = StateRow(k, floats(line["x"]), floats(line["alpha"]), number(line["beta"]))
         nxt = StateRow(k + 1, floats(line["x_next"]), floats(line["alpha_next"]), number(line["beta_next"]))
     except (KeyError, TypeError, ValueError) as exc:
@@ -83,6 +108,11 @@ def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, Sta
         sizes = {"x": len(now.x), "x_next": len(nxt.x), "u": len(step.u), "status": len(step.status),
                  "fallback": len(step.fallback), "solve_time": len(step.solve_time)}
         want = {"x": n, "x_next": n, "u": m, "status": M, "fallback": M, "solve_time": M}
+        if step.targets is not None:
+            t = step.targets
+            sizes.update({"target": len(t.x), "setpoint": len(t.setpoint), "target_u": len(t.u),
+                          "setpoint_u": len(t.setpoint_u)})
+            want.update({"target": n, "setpoint": n, "target_u": m, "setpoint_u": m})
         wrong = [key for key in sizes if sizes[key] != want[key]]
         if wrong:
             raise BadStep(f"step {k}: {wrong[0]} has {sizes[wrong[0]]} entries, the run {want[wrong[0]]}")

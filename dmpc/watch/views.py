@@ -220,19 +220,26 @@ def graph_tables(meta: RunMeta, states: list[str], coordinator_alive: bool = Tru
 
 def readout_html(meta: RunMeta, row: StateRow | None, step: StepRow | None, shown: int = 8) -> str:
     """The values at the shown step: beta(k), J(k), and x_i(k), u_i(k), alpha_i(k) of the first
-    ``shown`` subsystems."""
+    ``shown`` subsystems; with setpoints also the target x_s,i(k) applied and the setpoint (``-``
+    where free)."""
     if row is None:
         return "<i>no step yet</i>"
     head = (f"<b>k = <span class='dmpc-readout-k'>{row.k}</span></b> &nbsp; β(k) = "
             f"<span class='dmpc-beta'>{fmt(row.beta)}</span>"
             f" &nbsp; J(k) = <span class='dmpc-J'>{fmt(step.J) if step else '-'}</span>")
-    lines = ["<table class='dmpc-readout'><tr><th>subsystem</th><th>x(k)</th><th>u(k)</th><th>α(k)</th></tr>"]
+    targets = step.targets if step else None
+    extra = "<th>target x_s(k)</th><th>setpoint</th>" if targets else ""
+    lines = [f"<table class='dmpc-readout'><tr><th>subsystem</th><th>x(k)</th><th>u(k)</th><th>α(k)</th>{extra}</tr>"]
     for sub, xs, us in list(zip(meta.subsystems, meta.state_slices(), meta.input_slices()))[:shown]:
         x = ", ".join(fmt(v) for v in row.x[xs])
         u = ", ".join(fmt(v) for v in step.u[us]) if step else "-"
         a = ", ".join(fmt(v) for v in row.alpha[xs])
+        cells = ""
+        if targets:
+            cells = (f"<td class='dmpc-target'>{', '.join(fmt(v) for v in targets.x[xs])}</td>"
+                     f"<td class='dmpc-setpoint'>{', '.join(fmt(v) for v in targets.setpoint[xs])}</td>")
         lines.append(f"<tr><td>{html.escape(sub.name)}</td><td class='dmpc-x'>{x}</td><td class='dmpc-u'>{u}</td>"
-                     f"<td class='dmpc-alpha'>{a}</td></tr>")
+                     f"<td class='dmpc-alpha'>{a}</td>{cells}</tr>")
     lines.append("</table>")
     return head + "".join(lines)
 
