@@ -66,6 +66,13 @@ class LocalQP:
         lower, upper = self.terminal.bounds(centre, size)
         return self._qp.solve(x, coupling, lower, upper)
 
+    def violations(self, x: np.ndarray, coupling: np.ndarray, centre: np.ndarray, size: float, z: np.ndarray,
+                   v: np.ndarray) -> tuple[float, float]:
+        """How far the plan z (N+1, n), v (N, m) is from feasible for the QP :meth:`solve` would
+        solve with these arguments: (dynamics residual, excess over the other rows), relative."""
+        lower, upper = self.terminal.bounds(centre, size)
+        return self._qp.violations(x, coupling, lower, upper, z, v)
+
     def set_target(self, x_s: np.ndarray | None, u_s: np.ndarray | None) -> None:
         """Solve in deviation coordinates around the steady state x_s (n,), u_s (m,) of this
         subsystem from now on: U_i - u_s and X_i - x_s (None: the origin)."""

@@ -16,7 +16,7 @@ from dmpc.agents.controller import AgentController
 from dmpc.bus import keys
 from dmpc.bus.codec import MAX_NAME, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus, Timer
-from dmpc.bus.messages import COORDINATOR, PlanMessage, Ready, Release, Stop, design_claim
+from dmpc.bus.messages import COORDINATOR, Kept, PlanMessage, Ready, Release, Stop, design_claim
 from dmpc.core.qp_status import SOLVED
 from dmpc.core.trajectories import Plan
 from dmpc.security.rejects import Rejections, out_of_range
@@ -83,6 +83,8 @@ class AgentNode:
         self.duplicates = 0
         self._latest: tuple[int, int] | None = None  # newest release accepted
         self.solves = 0
+        self.keeps = 0
+        self._previous: Release | None = None  # the release answered before (for the kept plans of its step)
         self.peers_alive: set[str] = set()
         self.coordinator_seen = False
         self.coordinator_lost = False
@@ -214,6 +216,9 @@ class AgentNode:
             self.duplicates += 1  # seen already, or older than one seen: a newer release supersedes it
             return
         self._latest = (msg.k, msg.round)
+        if msg.kept:
+            self._rebuild_kept(msg)
+        self._previous = msg
         self._prune_plans()
         if not self._released:
             self._released = True
@@ -227,6 +232,26 @@ class AgentNode:
         self.pending = msg
         self._cancel_wait()
         self._try_solve()
+
+    def _rebuild_kept(self, release: Release) -> None:
+        """The plans of step k - 1 that the neighbours in ``release.kept`` kept, rebuilt from their
+        plans that the previous release referred to, with its state and centres (nothing is sent
+        for a kept plan). Without that release or that plan, the plan stays unknown: the solve
+        then waits for it as for a lost one."""
+        previous, k = self._previous, release.k - 1
+        if previous is None or previous.k != k:
+            return
+        for name in release.kept:
+            j = self.neighbour_names.get(name)
+            if j is None:
+                continue
+            ref = previous.reference(j)
+            plan = None if ref is None else self.plans[name].get(ref)
+            if ref is not None and name in previous.provided:
+                plan = Plan(ref[0], ref[1], *previous.provided[name])
+            if plan is None:
+                continue
+            self.plans[name][(k, 0)] = self.controller.neighbour_kept(j, plan, previous)
 
     def _check_release(self, msg: Release) -> str | None:
         if msg.sender != COORDINATOR:
@@ -328,8 +353,12 @@ class AgentNode:
         self._cancel_wait()
         self.bus.expect(None)
         msg = self.controller.answer(release, plans, self.run_id, clock=self.bus.now)
-        self.solves += 1
         self._last_done = (release.k, release.round)
+        if isinstance(msg, Kept):
+            self.keeps += 1
+            self.bus.publish(keys.kept(self.run_id, self.name), encode(msg))
+            return
+        self.solves += 1
         self.bus.publish(keys.plan(self.run_id, self.name), encode(msg))
 
     def _arm_wait(self) -> None:
@@ -362,10 +391,10 @@ class AgentNode:
         -------
         dict
             ``rejected`` (drops per sender), ``rejected_reasons`` (drops per reason),
-            ``duplicates`` (copies ignored), ``solves``.
+            ``duplicates`` (copies ignored), ``solves``, ``keeps`` (plans kept by the event trigger).
         """
         return {"rejected": dict(self.rejects.counts), "rejected_reasons": dict(self.rejects.reasons),
-                "duplicates": int(self.duplicates), "solves": int(self.solves)}
+                "duplicates": int(self.duplicates), "solves": int(self.solves), "keeps": int(self.keeps)}
 
 
 def _unchanged() -> None:

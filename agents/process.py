@@ -51,7 +51,7 @@ def agent_node(prepared: Prepared, name: str, bus: Bus, run_id: str,
     (:mod:`dmpc.runtime.inprocess`) both do it here.
     """
     controller = AgentController(prepared.system, prepared.design, prepared.names.index(name),
-                                 coupling=prepared.coupling, method=prepared.method)
+                                 coupling=prepared.coupling, method=prepared.method, trigger=prepared.trigger)
     return AgentNode(bus, controller, prepared.names, run_id, prepared.digest, plan_wait=prepared.plan_wait,
                      scenario=prepared.name, on_change=on_change)
 

@@ -21,6 +21,7 @@ from dmpc.bus.messages import (
     PROTOCOL_VERSION,
     TYPE_NAMES,
     Inputs,
+    Kept,
     Message,
     PlanMessage,
     Ready,
@@ -69,7 +70,8 @@ def wire_fields(cls: type) -> tuple[str, ...]:
 
 _FIELD_SETS: dict[type, frozenset] = {cls: frozenset(names) for cls, names in _FIELDS.items()}
 # fields a sender may leave out (added after the first release of the format); decode fills in the default
-_OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"}), Release: frozenset({"target"})}
+_OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"}), Release: frozenset({"target", "kept"}),
+                                    PlanMessage: frozenset({"reason"})}
 
 
 def encode(msg: Message) -> bytes:
@@ -85,8 +87,8 @@ def encode(msg: Message) -> bytes:
         body = _answer_body(msg)
     else:
         body = {VERSION_FIELD: PROTOCOL_VERSION, "type": TYPE_NAMES[cls]}
-        for name in _FIELDS[cls]:
-            body[name] = _to_wire(getattr(msg, name))
+        for field, name in zip(fields(cls), _FIELDS[cls]):
+            body[name] = _to_wire(getattr(msg, field.name))
     return msgpack.packb(body, use_bin_type=True)
 
 
@@ -104,7 +106,7 @@ def _plan_body(m: PlanMessage) -> dict:
     return {VERSION_FIELD: PROTOCOL_VERSION, "type": "plan", "run": m.run, "k": _scalar(m.k), "iteration": _scalar(m.round),
             "sender": m.sender, "status": m.status, "z": _wire_array(m.z), "v": _wire_array(m.v),
             "cost": _scalar(m.cost), "solve_time": _scalar(m.solve_time), "qp_iterations": _scalar(m.qp_iterations),
-            "sent_at": _scalar(m.sent_at)}
+            "sent_at": _scalar(m.sent_at), **({"reason": m.reason} if m.reason else {})}
 
 
 def _release_body(m: Release) -> dict:
@@ -113,7 +115,8 @@ def _release_body(m: Release) -> dict:
             "sizes": _wire_array(m.sizes), "assumed": _wire_array(m.assumed), "sender": m.sender,
             "skipped": list(m.skipped),
             "provided": {name: [_wire_array(z), _wire_array(v)] for name, (z, v) in m.provided.items()},
-            **({} if m.target is None else {"target": [_wire_array(m.target[0]), _wire_array(m.target[1])]})}
+            **({} if m.target is None else {"target": [_wire_array(m.target[0]), _wire_array(m.target[1])]}),
+            **({"kept": list(m.kept)} if m.kept else {})}
 
 
 def _setpoint_body(m: Setpoint) -> dict:
@@ -260,9 +263,14 @@ def _parse_release(b: dict) -> Release:
         target = (_array(pair[0], "target.x", 1), _array(pair[1], "target.u", 1))
         if target[0].shape != x.shape:
             raise DecodeError(f"target: x_s has {target[0].size} entries for a state of {x.size}")
+    kept = b.get("kept", [])
+    if type(kept) is not list or len(kept) > sizes.size or ("kept" in b and not kept):
+        raise DecodeError("kept: expected a non-empty list of at most one name per agent")
+    for name in kept:
+        _str(name, "kept name")
     return Release(run=_str(b["run"], "run"), k=_int(b, "k"), round=_int(b, "iteration"), x=x, centres=centres,
                    sizes=sizes, assumed=assumed, sender=_str(b["sender"], "sender"), skipped=tuple(skipped),
-                   provided=parsed_provided, target=target)
+                   provided=parsed_provided, target=target, kept=tuple(kept))
 
 
 def _parse_plan(b: dict) -> PlanMessage:
@@ -277,9 +285,17 @@ def _parse_plan(b: dict) -> PlanMessage:
     sent_at = _float(b, "sent_at")
     if solve_time < 0:
         raise DecodeError("solve_time: negative")
+    reason = b.get("reason", "")
+    if type(reason) is not str or len(reason) > MAX_NAME or ("reason" in b and not reason):
+        raise DecodeError(f"reason: expected a word of 1 to {MAX_NAME} characters")
     return PlanMessage(run=_str(b["run"], "run"), k=_int(b, "k"), round=_int(b, "iteration"),
                        sender=_str(b["sender"], "sender"), status=status, z=z, v=v, cost=cost,
-                       solve_time=solve_time, qp_iterations=_int(b, "qp_iterations"), sent_at=sent_at)
+                       solve_time=solve_time, qp_iterations=_int(b, "qp_iterations"), sent_at=sent_at, reason=reason)
+
+
+def _parse_kept(b: dict) -> Kept:
+    return Kept(run=_str(b["run"], "run"), k=_int(b, "k"), round=_int(b, "iteration"), sender=_str(b["sender"], "sender"),
+                sent_at=_float(b, "sent_at"))
 
 
 def _parse_ready(b: dict) -> Ready:
@@ -335,7 +351,7 @@ def _parse_answer(b: dict) -> SetpointAnswer:
                           accepted=accepted, k=k, reason=reason)
 
 
-_PARSERS = {Release: _parse_release, PlanMessage: _parse_plan, Ready: _parse_ready, Stop: _parse_stop,
+_PARSERS = {Release: _parse_release, PlanMessage: _parse_plan, Kept: _parse_kept, Ready: _parse_ready, Stop: _parse_stop,
             Inputs: _parse_inputs, State: _parse_state, Setpoint: _parse_setpoint, SetpointAnswer: _parse_answer}
 # every field present: the common case, checked with one comparison
 _WIRE_KEYS = {cls: frozenset(names) | {VERSION_FIELD, "type"} for cls, names in _FIELD_SETS.items()}

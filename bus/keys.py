@@ -37,6 +37,10 @@ def plan(run: str, agent: str) -> str:
     return f"{ROOT}/{run}/plan/{agent}"
 
 
+def kept(run: str, agent: str) -> str:
+    return f"{ROOT}/{run}/kept/{agent}"
+
+
 def ready(run: str, agent: str) -> str:
     return f"{ROOT}/{run}/ready/{agent}"
 

@@ -4,6 +4,8 @@
   state, each agent's terminal centre and size and, per agent, which of its plans its neighbours
   build their assumed trajectory from.
 - ``PlanMessage`` agent i -> neighbours and coordinator: the solved plan of (k, round).
+- ``Kept`` agent i -> coordinator: with an event trigger, the agent kept its shifted plan at step k
+  (no solve, no plan message; everyone rebuilds the kept plan from what they hold).
 - ``Ready`` agent -> coordinator: the agent is set up (with the digest of its design).
 - ``Stop`` coordinator -> everyone: the run is over (finished, aborted, failed).
 - ``Inputs`` coordinator -> plant: the inputs u(k) to apply.
@@ -61,6 +63,10 @@ class Release:
     target : (ndarray (n,), ndarray (m,)) or None
         The setpoint target (x_s, u_s) of the whole system the step is controlled around; None
         (left out on the wire) at the origin.
+    kept : tuple of str
+        The agents that kept their plan at step k - 1 (an event trigger): the plans ``assumed``
+        names for them are their plans of step k - 2 kept (:func:`dmpc.core.trajectories.kept_plan`
+        with the state and centre of release k - 1). Left out on the wire when empty.
     """
 
     run: str
@@ -74,6 +80,7 @@ class Release:
     skipped: tuple[str, ...] = ()
     provided: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     target: tuple[np.ndarray, np.ndarray] | None = None
+    kept: tuple[str, ...] = ()
 
     def reference(self, j: int) -> tuple[int, int] | None:
         """The plan (k', round') agent j's assumed trajectory is built from, or None (K-rollout)."""
@@ -99,6 +106,9 @@ class PlanMessage:
     qp_iterations : int
     sent_at : float
         Sender's clock when published (latency measurement only).
+    reason : str
+        With an event trigger, why the agent solved rather than kept its plan
+        (:data:`dmpc.agents.trigger.REASONS`); "" without one (left out on the wire).
     """
 
     run: str
@@ -111,6 +121,19 @@ class PlanMessage:
     cost: float
     solve_time: float
     qp_iterations: int
+    sent_at: float = 0.0
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Kept:
+    """Agent ``sender`` kept its shifted plan at step k, round ``round`` (an event trigger): the
+    coordinator rebuilds the plan from the agent's last one, x(k) and alpha(k)."""
+
+    run: str
+    k: int
+    round: int
+    sender: str
     sent_at: float = 0.0
 
 
@@ -215,9 +238,9 @@ class SetpointAnswer:
     reason: str = ""
 
 
-Message = Release | PlanMessage | Ready | Stop | Inputs | State | Setpoint | SetpointAnswer
+Message = Release | PlanMessage | Kept | Ready | Stop | Inputs | State | Setpoint | SetpointAnswer
 
-MESSAGE_TYPES: dict[str, type] = {"release": Release, "plan": PlanMessage, "ready": Ready, "stop": Stop,
+MESSAGE_TYPES: dict[str, type] = {"release": Release, "plan": PlanMessage, "kept": Kept, "ready": Ready, "stop": Stop,
                                   "inputs": Inputs, "state": State, "setpoint": Setpoint,
                                   "setpoint-answer": SetpointAnswer}
 TYPE_NAMES: dict[type, str] = {v: k for k, v in MESSAGE_TYPES.items()}

@@ -20,13 +20,13 @@ from functools import partial
 
 import numpy as np
 
-from dmpc.bus.messages import PlanMessage, Release, Setpoint, SetpointAnswer
+from dmpc.bus.messages import Kept, PlanMessage, Release, Setpoint, SetpointAnswer
 from dmpc.core.central_qp import CentralQP
 from dmpc.core.mpc_qp import plan_cost
-from dmpc.core.qp_status import SOLVED, QPStatus
+from dmpc.core.qp_status import KEPT, PLANNED, SOLVED, QPStatus
 from dmpc.core.steps import NO_SEED, SETPOINT_METHODS, ProtocolOptions, StepRecord
 from dmpc.core.system import CoupledSystem, LinearSet, project_onto
-from dmpc.core.trajectories import Plan, candidate_plan, relative_to, shifted_input
+from dmpc.core.trajectories import Plan, candidate_plan, kept_around, relative_to, shifted_input
 from dmpc.methods import DEFAULT_METHOD, terminal_policy
 from dmpc.methods.policy import TerminalPolicy, TerminalState
 from dmpc.offline import ControllerDesign
@@ -37,6 +37,7 @@ from dmpc.tracking.targets import Target
 from dmpc.tracking.tracker import Tracker, TrackingStep
 
 KNOWN_STATUSES = frozenset(s.value for s in QPStatus)
+NO_PLAN_TO_KEEP = "kept without a plan of the previous step"
 # A solved plan may leave U_i by this much times max(1, |bound|): OSQP solves to about 1e-7,
 # so an honest plan stays well inside, and anything beyond is refused.
 INPUT_TOLERANCE = 1e-6
@@ -127,6 +128,7 @@ class _AgentStep:
     latency: float
     z: np.ndarray
     v: np.ndarray
+    solved_because: str = ""
 
 
 @dataclass(frozen=True)
@@ -148,6 +150,7 @@ class _PendingStep:
     max_change: Callable[[], float]
     tracking: TrackingStep | None = None
     target: Target | None = None  # the target of the next step (with a tracker)
+    triggered: bool = False  # an event trigger: the record says why each agent solved
 
     def record(self, x_next: np.ndarray, step_time: float, system: CoupledSystem) -> StepRecord:
         agents, nxt = self.agents, self.terminal
@@ -159,7 +162,8 @@ class _PendingStep:
             fallback_reason=[a.reason for a in agents], solve_time=[a.solve_time for a in agents],
             qp_iterations=[a.qp_iterations for a in agents], plans_z=[a.z for a in agents],
             plans_v=[a.v for a in agents], latency=[a.latency for a in agents], note=self.note, r=self.r,
-            r_next=nxt.r, x_next=x_next, step_time=step_time, tracking=self.tracking)
+            r_next=nxt.r, x_next=x_next, step_time=step_time, tracking=self.tracking,
+            solve_reason=[a.solved_because for a in agents] if self.triggered else None)
 
 
 class Coordinator:
@@ -185,11 +189,14 @@ class Coordinator:
     tracker : Tracker, optional
         The setpoint targets (docs/algorithm.md, "Setpoints"): each step's controllers work in
         deviation coordinates around the target it applies. None: the origin throughout.
+    triggered : bool
+        The agents have an event trigger: they may answer with :class:`Kept` (:meth:`on_kept`),
+        and the records say why each agent solved.
     """
 
     def __init__(self, system: CoupledSystem, design: ControllerDesign, plant: Plant | None, options: ProtocolOptions,
                  run_id: str, policy: TerminalPolicy | None = None, clock: Callable[[], float] | None = None,
-                 tracker: Tracker | None = None) -> None:
+                 tracker: Tracker | None = None, triggered: bool = False) -> None:
         self.system = system
         self.design = design
         self.plant = plant
@@ -229,6 +236,8 @@ class Coordinator:
         self._note = self.terminal.note
         self.tracker = tracker
         self._target: Target | None = None  # the open step's target, None at the origin
+        self.triggered = triggered
+        self._kept_last: tuple[str, ...] = ()  # the agents that kept their plan at the step before
 
     @property
     def alpha(self) -> np.ndarray:
@@ -298,6 +307,49 @@ class Coordinator:
         refused = [self._refuse(i, msg, excess)] if excess > 0 else []
         return refused + self._maybe_close_round(), None
 
+    def on_kept(self, msg: Kept) -> tuple[list, str | None]:
+        """Agent ``msg.sender`` kept its shifted plan (an event trigger): the plan is rebuilt here
+        from the agent's last plan, x_i(k) and alpha_i(k), and stands as the agent's answer, or the
+        notice is dropped and the reason said (as for :meth:`on_plan`)."""
+        problem = self._kept_problem(msg)
+        if problem is not None:
+            return [], problem
+        if self.finished:
+            return [], None
+        i = self.index[msg.sender]
+        if i in self._round or i in self._missed:
+            self.duplicates += 1
+            return [], None
+        last = self.last_plan[i]
+        assert last is not None  # checked above
+        x_i = self.x[self.system.xs(i)]
+        offset = self._around(self._target, i, last, x_i)[2]
+        centre = self.alpha[self.system.xs(i)]
+        kept = kept_around(last, self.k, x_i, centre, self._gamma[i], self._K[i], offset)
+        around = kept if offset is None else relative_to(kept, *offset)
+        assert around is not None
+        sub = self.system.subsystems[i]
+        cost = plan_cost(around.z, around.v, sub.Q, sub.R, self.design.gains.P[i])
+        self._round[i] = PlanMessage(run=msg.run, k=msg.k, round=msg.round, sender=msg.sender, status=KEPT, z=kept.z,
+                                     v=kept.v, cost=cost, solve_time=0.0, qp_iterations=0, sent_at=msg.sent_at)
+        self._received_at[i] = self._now()
+        return self._maybe_close_round(), None
+
+    def _kept_problem(self, msg: Kept) -> str | None:
+        """None if the notice belongs to the open round of an agent with a plan of the step
+        before; else the reason."""
+        if msg.run != self.run_id:
+            return "wrong run"
+        i = self.index.get(msg.sender)
+        if i is None:
+            return "unknown sender"
+        if (msg.k, msg.round) != (self.k, self.round):
+            return STALE if (msg.k, msg.round) < (self.k, self.round) else "future"
+        last = self.last_plan[i]
+        if not self.triggered or self.round != 0 or last is None or last.k != self.k - 1:
+            return NO_PLAN_TO_KEEP
+        return None
+
     def step_opened(self) -> None:
         """The host has begun the open step (sent its release, or opened it with every agent
         lost): the step's time runs from now."""
@@ -314,8 +366,8 @@ class Coordinator:
         return PlanRefused(msg.sender, msg.k, msg.round, excess, count)
 
     def _usable(self, i: int, msg: PlanMessage | None) -> bool:
-        """True if ``msg`` is a solved plan of agent i that was not refused."""
-        return msg is not None and msg.status in SOLVED and self._refused.get(i) is not msg
+        """True if ``msg`` is a solved (or kept) plan of agent i that was not refused."""
+        return msg is not None and msg.status in PLANNED and self._refused.get(i) is not msg
 
     def _fallback_reason(self, i: int, msg: PlanMessage | None) -> str:
         if msg is None:
@@ -471,7 +523,8 @@ class Coordinator:
                               centres=centres, sizes=sizes, assumed=assumed,
                               skipped=tuple(self.names[i] for i in sorted(self._lost)),
                               provided=self._provided_plans(),
-                              target=None if self._target is None else (self._target.x, self._target.u))
+                              target=None if self._target is None else (self._target.x, self._target.u),
+                              kept=self._kept_last if self.round == 0 else ())
             actions.append(SendRelease(release))
         actions.append(RoundOpened(self.k, self.round))
         actions.extend(self._maybe_close_round())
@@ -498,7 +551,7 @@ class Coordinator:
             self._round_status[i] = msg
             if self._usable(i, msg):
                 self._step_latest[i] = Plan(msg.k, msg.round, msg.z, msg.v)
-        infeasible = [self.names[i] for i, msg in self._round.items() if msg.status not in SOLVED]
+        infeasible = [self.names[i] for i, msg in self._round.items() if msg.status not in PLANNED]
         if self.k == 0 and self.round == 0 and infeasible and not self._missed:
             self._seed_from_centralized(infeasible)
         rounds_allowed = self.options.initial_rounds if self.k == 0 else self.options.rounds
@@ -590,7 +643,8 @@ class Coordinator:
             nxt = self.policy.update(self.terminal, eta - target.x, target.scale)
         pending = _PendingStep(k=self.k, x=x, u=u, alpha=self.alpha.copy(), beta=self.beta, rounds=self.round + 1,
                                agents=agents, note="; ".join(t for t in (self._note, nxt.note) if t), r=self.terminal.r,
-                               terminal=nxt, max_change=max_change, tracking=tracking, target=target)
+                               terminal=nxt, max_change=max_change, tracking=tracking, target=target,
+                               triggered=self.triggered)
         if self.plant is None:
             self._pending = pending
             return [ApplyInputs(self.k, u)]
@@ -602,6 +656,7 @@ class Coordinator:
         actions: list = [StepCompleted(partial(pending.record, x_next.copy(), self._now() - self._opened_at, self.system))]
         self.terminal = nxt
         self._target = None if pending.target is None or pending.target.is_origin else pending.target
+        self._kept_last = tuple(self.names[i] for i, a in enumerate(pending.agents) if a.status == KEPT)
         self.k += 1
         self.round = 0
         self._step_latest = {}
@@ -623,6 +678,7 @@ class Coordinator:
         The plan of the step becomes the agent's last plan."""
         msg = self._round_status.get(i)
         plan = self._step_latest.get(i)
+        reason = "" if msg is None else msg.reason
         if msg is None:
             status, solve_time, qp_iterations, latency = "missed", math.nan, 0, math.nan
         else:
@@ -634,7 +690,7 @@ class Coordinator:
             J = float(msg.cost) if usable else self._candidate_cost(i, self._around(self._target, i, plan, x_i)[0])
             return _AgentStep(u=plan.v[0], eta=plan.z[-1], J=J, status=status, fallback=False, reason="",
                               solve_time=solve_time, qp_iterations=qp_iterations, latency=latency, z=plan.z,
-                              v=plan.v)
+                              v=plan.v, solved_because=reason)
         sub = self.system.subsystems[i]
         last, x_i, offset = self._around(self._target, i, self.last_plan[i], x_i)
         u_c = shifted_input(last, self.k, x_i, self._gamma[i], self._K[i])
@@ -645,7 +701,7 @@ class Coordinator:
         return _AgentStep(u=project_onto(sub.input_set, u_c), eta=eta,
                           J=self._candidate_cost(i, last) if last is not None else math.nan, status=status,
                           fallback=True, reason=self._fallback_reason(i, msg), solve_time=solve_time,
-                          qp_iterations=qp_iterations, latency=latency, z=z_c, v=v_c)
+                          qp_iterations=qp_iterations, latency=latency, z=z_c, v=v_c, solved_because=reason)
 
     def _around(self, target: Target | None, i: int, plan: Plan | None,
                 x_i: np.ndarray) -> tuple[Plan | None, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:

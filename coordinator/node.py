@@ -17,7 +17,16 @@ from typing import Protocol
 from dmpc.bus import keys
 from dmpc.bus.codec import MAX_REASON, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus
-from dmpc.bus.messages import PROTOCOL_VERSION, PlanMessage, Ready, Setpoint, SetpointAnswer, Stop, design_claim
+from dmpc.bus.messages import (
+    PROTOCOL_VERSION,
+    Kept,
+    PlanMessage,
+    Ready,
+    Setpoint,
+    SetpointAnswer,
+    Stop,
+    design_claim,
+)
 from dmpc.coordinator.barrier import (
     ApplyInputs,
     Coordinator,
@@ -44,6 +53,29 @@ def design_text(digest: str, scenario: str = "", horizon: int = 0) -> str:
     """``<digest> (scenario '<name>', horizon <N>)``, leaving out what is unknown."""
     known = ([f"scenario '{_shown(scenario)}'"] if scenario else []) + ([f"horizon {horizon}"] if horizon else [])
     return _shown(digest) + (f" ({', '.join(known)})" if known else "")
+
+
+class MessageCount:
+    """The agents' answers that reached the coordinator: per agent, plan messages and kept notices
+    and their bytes (each published once, whoever else received it)."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, dict[str, int]] = {}
+
+    def add(self, sender: str, kind: str, size: int) -> None:
+        entry = self.counts.setdefault(sender, {"plan": 0, "kept": 0, "bytes": 0})
+        entry[kind] += 1
+        entry["bytes"] += size
+
+    def summary(self, names: list[str]) -> dict:
+        """``summary.json``'s ``messages``: totals and, per agent, ``plan_messages``,
+        ``kept_notices`` and ``bytes``."""
+        per = {name: {"plan_messages": self.counts.get(name, {}).get("plan", 0),
+                      "kept_notices": self.counts.get(name, {}).get("kept", 0),
+                      "bytes": self.counts.get(name, {}).get("bytes", 0)} for name in names}
+        return {"plan_messages": sum(p["plan_messages"] for p in per.values()),
+                "kept_notices": sum(p["kept_notices"] for p in per.values()),
+                "bytes": sum(p["bytes"] for p in per.values()), "per_agent": per}
 
 
 class RunObserver(Protocol):
@@ -125,10 +157,20 @@ class CoordinatorNode:
         self._t0 = 0.0
         self._opened_step = -1  # the last step whose time was started
         self._stop_payload: bytes | None = None
+        self.messages = MessageCount()
         bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan, hot=True)
+        bus.subscribe(keys.kept(self.run_id, "*"), self._on_kept, hot=True)
         bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
         bus.subscribe(keys.setpoint_prefix(self.run_id), self._on_setpoint)
         bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
+
+    def counts(self) -> dict:
+        """What this node counted, for ``summary.json``: messages dropped (``rejected`` and their
+        ``rejected_reasons``), copies ignored (``duplicates``), plans refused (``inputs_refused``),
+        and the agents' plan messages and kept notices that reached it (``messages``)."""
+        c = self.coordinator
+        return {"rejected": self.rejected, "rejected_reasons": self.rejects.reasons, "duplicates": c.duplicates,
+                "inputs_refused": c.inputs_refused, "messages": self.messages.summary(self.names)}
 
     def announce(self) -> None:
         self.bus.declare_alive(keys.alive(self.run_id, keys.COORDINATOR_ROLE))
@@ -217,6 +259,7 @@ class CoordinatorNode:
         if not isinstance(msg, PlanMessage) or msg.sender != name:
             self._reject(name, "not a plan from its key's agent")
             return
+        self.messages.add(name, "plan", len(payload))
         actions, problem = self.coordinator.on_plan(msg)
         if problem is not None:
             if problem != STALE:  # late plans after a deadline are normal in realtime
@@ -249,6 +292,22 @@ class CoordinatorNode:
             log.warning("coordinator: %s accepted from step %d", who, answer.k)
         else:
             log.warning("coordinator: %s refused: %s", who, _shown(answer.reason))
+
+    def _on_kept(self, key: str, payload: bytes) -> None:
+        name = keys.last_chunk(key)
+        msg = self._decoded(name, payload)
+        if msg is None:
+            return
+        if not isinstance(msg, Kept) or msg.sender != name:
+            self._reject(name, "not a kept notice from its key's agent")
+            return
+        self.messages.add(name, "kept", len(payload))
+        actions, problem = self.coordinator.on_kept(msg)
+        if problem is not None:
+            if problem != STALE:
+                self._reject(name, problem)
+            return
+        self._carry_out(actions)
 
     @staticmethod
     def _log_refusal(refusal: PlanRefused) -> None:

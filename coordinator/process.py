@@ -50,7 +50,7 @@ def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callabl
         tracker = Tracker(prepared.system, prepared.design.terminal, policy.closed_loop,
                           prepared.design.gains.K_global(), prepared.setpoints, prepared.setpoint_margin)
     coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id, policy=policy,
-                              clock=bus.now, tracker=tracker)
+                              clock=bus.now, tracker=tracker, triggered=prepared.trigger.event)
     return CoordinatorNode(bus, coordinator, prepared.digest, on_step, mode=prepared.mode, dt=prepared.dt,
                            deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry,
                            plant_timeout=plant_timeout)
@@ -75,28 +75,22 @@ def run_coordinator(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id:
         if not bus.run(until=lambda: node.started or node.finished, timeout=startup_timeout):
             reason = node.startup_failure(startup_timeout)
             node.fail(reason)
-            summary = recorder.complete(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
-                                        rejected_reasons=node.rejects.reasons)
+            summary = recorder.complete(**outside, runtime=runtime, failure=reason, **node.counts())
             finish(bus, node, summary, telemetry, recorder)
             return CoordinatorOutcome(EXIT_FAILED, reason, summary)
         bus.run(until=lambda: node.finished)
     except RecordWriteError as exc:
         reason = f"{node.who}: {exc}; the run stopped after {recorder.steps} steps, which are kept in {STEP_LOG}"
         node.fail(reason)
-        summary = recorder.complete_if_possible(**outside, runtime=runtime, failure=reason, rejected=node.rejected,
-                                                rejected_reasons=node.rejects.reasons,
-                                                inputs_refused=coordinator.inputs_refused)
+        summary = recorder.complete_if_possible(**outside, runtime=runtime, failure=reason, **node.counts())
         finish(bus, node, summary, telemetry, recorder)
         return CoordinatorOutcome(EXIT_FAILED, reason, summary)
     except KeyboardInterrupt:
         node.abort("aborted")
-        summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", rejected=node.rejected,
-                                    rejected_reasons=node.rejects.reasons, inputs_refused=coordinator.inputs_refused)
+        summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", **node.counts())
         finish(bus, node, summary, telemetry, recorder)
         return CoordinatorOutcome(EXIT_INTERRUPTED, f"{node.who}: interrupted after {coordinator.k} steps", summary)
-    summary = recorder.complete(**outside, runtime=runtime, failure=node.failure or None, rejected=node.rejected,
-                                rejected_reasons=node.rejects.reasons, duplicates=coordinator.duplicates,
-                                inputs_refused=coordinator.inputs_refused)
+    summary = recorder.complete(**outside, runtime=runtime, failure=node.failure or None, **node.counts())
     finish(bus, node, summary, telemetry, recorder)
     if node.failure:
         return CoordinatorOutcome(EXIT_FAILED, f"{node.who}: {node.failure}", summary)

@@ -166,9 +166,10 @@ class MpcQP:
         self._u = np.clip(np.concatenate(upper), -OSQP_INFTY, OSQP_INFTY)
         opts = dict(DEFAULT_SETTINGS)
         opts.update(settings or {})
+        self._rows = sp.vstack(blocks, format="csc")
         self._solver = osqp.OSQP()
         self._solver.setup(P=2.0 * sp.triu(cost, format="csc"), q=np.zeros(nz + nv),
-                           A=sp.vstack(blocks, format="csc"), l=self._l, u=self._u, **opts)
+                           A=self._rows, l=self._l, u=self._u, **opts)
         self._refine = int(opts["polish_refine_iter"])
         self._nvars = nz + nv
         self._cold = False
@@ -241,6 +242,27 @@ class MpcQP:
         # q = 0 and P = 2 * cost, so OSQP's objective is the plan's cost
         return QPSolution(status, z, solution[nz:].reshape(N, self.m), float(info.obj_val), elapsed, info.iter,
                           info.status_polish == POLISH_SUCCESS)
+
+    def violations(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
+                   terminal_upper: np.ndarray, z: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+        """How far the plan z (N+1, n), v (N, m) is from a feasible point of the QP that
+        :meth:`solve` would solve with the same arguments: the largest residual of its dynamics
+        rows, and the largest excess over its input, state and terminal rows, each relative to
+        max(1, |bound|). Both 0 for a feasible plan; nothing is solved."""
+        nz = self._nz
+        rows = self._rows @ np.concatenate([z.reshape(-1), v.reshape(-1)])
+        target = np.empty(nz)
+        target[:self.n] = -x
+        target[self.n:] = 0.0 if coupling is None else -coupling.reshape(-1)
+        dynamics = float(np.max(np.abs(rows[:nz] - target) / np.maximum(1.0, np.abs(target))))
+        lower, upper = self._l.copy(), self._u.copy()
+        lower[self._terminal] = np.clip(terminal_lower, -OSQP_INFTY, OSQP_INFTY)
+        upper[self._terminal] = np.clip(terminal_upper, -OSQP_INFTY, OSQP_INFTY)
+        lower, upper, rest = lower[nz:], upper[nz:], rows[nz:]
+        with np.errstate(invalid="ignore"):
+            excess = np.maximum((lower - rest) / np.maximum(1.0, np.abs(lower)),
+                                (rest - upper) / np.maximum(1.0, np.abs(upper)))
+        return dynamics, float(max(np.max(excess, initial=0.0), 0.0))
 
     def _run(self, l: np.ndarray, u: np.ndarray):
         """Set the bounds l, u (each (rows,)) and solve; OSQP's info and primal solution (vars,)."""

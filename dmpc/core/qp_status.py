@@ -26,3 +26,9 @@ class QPStatus(str, enum.Enum):
 
 SOLVED = frozenset({QPStatus.SOLVED.value, QPStatus.INACCURATE.value})
 """The statuses, as plans carry them, of a solve that produced a plan."""
+
+KEPT = "kept"
+"""The status of an agent's answer when its event trigger kept its shifted plan: a plan, no solve."""
+
+PLANNED = SOLVED | {KEPT}
+"""The statuses of an answer that gives the step a plan of the agent's own."""

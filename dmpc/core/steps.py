@@ -25,6 +25,13 @@ SETPOINT_METHODS: tuple[Method, ...] = ("tv-box", "tv-box-opt")
 """The methods that track setpoints: their terminal boxes move with the target (docs/algorithm.md,
 "Setpoints")."""
 
+Trigger = Literal["always", "event"]
+"""When an agent solves: at every step (``always``), or when its event trigger fires (``event``;
+docs/algorithm.md, "Event-triggered DMPC")."""
+TRIGGERS: tuple[Trigger, ...] = get_args(Trigger)
+TRIGGER_METHODS: tuple[Method, ...] = ("tv-box", "tv-box-opt")
+"""The methods an event trigger works with: a kept plan ends at the box centre alpha_i(k)."""
+
 NO_SEED = "no centralised seed: "
 """Starts the part of a k = 0 note that says why the centralised QP gave no plan to start from,
 when the agents' first round was infeasible (the verdict's ``infeasible-start`` quotes it)."""
@@ -63,12 +70,54 @@ class ProtocolOptions:
 
 
 @dataclass(frozen=True)
+class TriggerOptions:
+    """The event trigger of every agent (``options.trigger`` and its thresholds).
+
+    Attributes
+    ----------
+    mode : {"always", "event"}
+    threshold : tuple of float
+        Per subsystem, the largest prediction error ||x_i(k) - z_i(k|k-1)||_inf kept (its states' units).
+    cost : tuple of float
+        Per subsystem, the largest cost an agent gives up by keeping its plan.
+    max_keep : int or None
+        Most consecutive keeps of an agent (None: no limit).
+    """
+
+    mode: Trigger = "always"
+    threshold: tuple[float, ...] = ()
+    cost: tuple[float, ...] = ()
+    max_keep: int | None = None
+
+    @property
+    def event(self) -> bool:
+        return self.mode == "event"
+
+    def to_json(self) -> dict:
+        return {"mode": self.mode, "threshold": list(self.threshold), "cost": list(self.cost),
+                "max_keep": self.max_keep}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "TriggerOptions":
+        mode = data.get("mode", "always")
+        if mode not in TRIGGERS:
+            raise ValueError(f"trigger mode {mode!r} is not one of {', '.join(TRIGGERS)}")
+        max_keep = data.get("max_keep")
+        return cls(mode=mode, threshold=tuple(float(v) for v in data.get("threshold", ())),
+                   cost=tuple(float(v) for v in data.get("cost", ())),
+                   max_keep=None if max_keep is None else int(max_keep))
+
+
+@dataclass(frozen=True)
 class StepRecord:
     """Everything recorded about one step, built once when the step completes.
 
     Array shapes: x (n,), u (m,), alpha (n,), x_next (n,); per-agent lists have M entries.
     ``r`` and ``r_next`` (M,) are the ellipsoid levels of the ellipsoid methods (None otherwise);
     those methods record alpha = 0 and beta = NaN.
+
+    ``solve_reason`` (M,), with an event trigger: per agent, why it solved ("" where it kept its
+    plan, or without a plan of its own); None without one.
 
     ``tracking`` (a :class:`dmpc.tracking.tracker.TrackingStep`) says what the step tracked: the
     request, its target and the target applied (None where nothing was ever requested).
@@ -104,3 +153,4 @@ class StepRecord:
     r: np.ndarray | None = None
     r_next: np.ndarray | None = None
     tracking: Any = None
+    solve_reason: list[str] | None = None

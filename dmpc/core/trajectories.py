@@ -37,6 +37,55 @@ def relative_to(plan: Plan | None, x_s: np.ndarray, u_s: np.ndarray) -> Plan | N
     return Plan(plan.k, plan.round, plan.z - x_s, plan.v - u_s)
 
 
+def kept_plan(plan: Plan, k: int, x_now: np.ndarray, end: np.ndarray, Gamma: np.ndarray, K: np.ndarray) -> Plan:
+    """The plan made at step k - 1, kept at step k: shifted by one step, corrected for the
+    prediction error e = x_now - z(k|k-1) by the terminal controller, and ended at ``end``.
+
+    z(t) = z(k+t|k-1) + Gamma^t e and v(t) = v(k+t|k-1) + K Gamma^t e for t < N - 1,
+    v(N-1) = K z(N-1), z(N) = end + Gamma^N e; ``end`` is where the coupled system takes the plans'
+    last states under K (alpha_i(k) for the time-varying boxes). Every party that knows the plan,
+    x_now and ``end`` computes the same floats.
+
+    Parameters
+    ----------
+    plan : Plan
+        Made at step k - 1: z (N+1, n), v (N, m).
+    x_now : ndarray, shape (n,)
+    end : ndarray, shape (n,)
+    Gamma : ndarray, shape (n, n)
+    K : ndarray, shape (m, n)
+    """
+    N = plan.v.shape[0]
+    e = x_now - plan.z[1]
+    correction = np.empty((N + 1, e.size))
+    correction[0] = e
+    for t in range(1, N + 1):
+        correction[t] = Gamma @ correction[t - 1]
+    z = np.empty_like(plan.z, dtype=float)
+    z[:N] = plan.z[1:] + correction[:N]
+    z[N] = end + correction[N]
+    v = np.empty_like(plan.v, dtype=float)
+    v[:N - 1] = plan.v[1:] + correction[:N - 1] @ K.T
+    v[N - 1] = K @ z[N - 1]
+    z[0] = x_now
+    return Plan(k, 0, z, v)
+
+
+def kept_around(plan: Plan, k: int, x_now: np.ndarray, end: np.ndarray, Gamma: np.ndarray, K: np.ndarray,
+                offset: tuple[np.ndarray, np.ndarray] | None = None) -> Plan:
+    """:func:`kept_plan` of a plan in the plant's coordinates, taken in deviation coordinates around a
+    setpoint target ``offset`` = (x_s (n,), u_s (m,)) of step k and given back in the plant's
+    (``end`` is relative to the target, as alpha_i(k) is). The one way the agent, its neighbours
+    and the coordinator build a kept plan, so that they hold the same floats."""
+    if offset is None:
+        return kept_plan(plan, k, x_now, end, Gamma, K)
+    x_s, u_s = offset
+    moved = relative_to(plan, x_s, u_s)
+    assert moved is not None
+    kept = kept_plan(moved, k, x_now - x_s, end, Gamma, K)
+    return Plan(k, 0, kept.z + x_s, kept.v + u_s)
+
+
 def continued(plan: Plan, length: int, Gamma: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The plan extended with the terminal controller.
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dmpc.bus.faults import FaultPlan
-from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, Coupling, Method, Mode, ProtocolOptions
+from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, Coupling, Method, Mode, ProtocolOptions, TriggerOptions
 from dmpc.core.system import CoupledSystem
 from dmpc.offline import ControllerDesign
 from dmpc.tracking.schedule import SetpointEntry
@@ -102,6 +102,8 @@ class Prepared:
         The scenario's setpoint schedule (empty: the origin throughout).
     setpoint_margin : float
         The fraction of every bound setpoint targets keep free.
+    trigger : TriggerOptions
+        When the agents solve (``always``: at every step).
     """
 
     scenario: "Scenario | None"
@@ -120,6 +122,7 @@ class Prepared:
     model: dict | None = None
     setpoints: tuple[SetpointEntry, ...] = ()
     setpoint_margin: float = DEFAULT_MARGIN
+    trigger: TriggerOptions = TriggerOptions()
 
     @property
     def tracks(self) -> bool:
@@ -147,8 +150,10 @@ class Prepared:
         return None if self.deadline is None else 0.5 * self.deadline
 
 
-def design_digest(design: ControllerDesign, method: Method = DEFAULT_METHOD) -> str:
-    """Short hash of the design, and of the method unless it is the default ``tv-box``.
+def design_digest(design: ControllerDesign, method: Method = DEFAULT_METHOD,
+                  trigger: TriggerOptions | None = None) -> str:
+    """Short hash of the design, of the method unless it is the default ``tv-box``, and of the
+    event trigger if there is one (every process must decide alike).
 
     Omega enters through the hash of its float64 bytes and its shape: the same for an Omega read
     back from a file (JSON keeps every float exactly), and far cheaper than its text, which has
@@ -159,5 +164,7 @@ def design_digest(design: ControllerDesign, method: Method = DEFAULT_METHOD) -> 
     data["omega"] = [list(omega.shape), hashlib.sha256(omega.tobytes()).hexdigest()]
     if method != DEFAULT_METHOD:
         data["method"] = method
+    if trigger is not None and trigger.event:
+        data["trigger"] = trigger.to_json()
     text = json.dumps(data, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]

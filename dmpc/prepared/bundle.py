@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from dmpc.bus.faults import FaultPlan
-from dmpc.core.steps import ProtocolOptions
+from dmpc.core.steps import ProtocolOptions, TriggerOptions
 from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
 from dmpc.methods import DEFAULT_METHOD, method_spec
 from dmpc.offline import design_from_json
@@ -73,6 +73,7 @@ def bundle_json(prepared: Prepared) -> dict:
         "protocol": prepared.protocol.to_json(),
         "mode": prepared.mode, "dt": prepared.dt, "deadline": prepared.deadline,
         "faults": prepared.faults.to_json(),
+        "trigger": prepared.trigger.to_json(),
     }
 
 
@@ -104,10 +105,11 @@ def load_bundle(path: Path) -> Prepared:
         design = dataclasses.replace(design, tightening=tightening, tube=design_data["tube"])
         plan = FaultPlan.from_json(d["faults"])
         method = method_spec(str(d.get("method", DEFAULT_METHOD))).name
-        prepared = Prepared(scenario=None, system=system, design=design, digest=design_digest(design, method),
+        trigger = TriggerOptions.from_json(d.get("trigger", {}))
+        prepared = Prepared(scenario=None, system=system, design=design, digest=design_digest(design, method, trigger),
                             protocol=ProtocolOptions.from_json(d["protocol"]), mode=d["mode"], dt=float(d["dt"]),
                             deadline=d["deadline"], faults=plan, name=d["name"], coupling=d["coupling"],
-                            method=method)
+                            method=method, trigger=trigger)
     except (OSError, KeyError, TypeError, ValueError, IndexError) as exc:
         raise ValueError(f"{path}: not a usable run bundle ({exc})") from None
     if prepared.digest != design_data.get("digest"):

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dmpc.core.qp_status import SOLVED, QPStatus
+from dmpc.core.qp_status import KEPT, PLANNED, SOLVED, QPStatus
 from dmpc.core.steps import StepRecord
 from dmpc.core.system import CoupledSystem
 
@@ -28,9 +28,9 @@ BLOCK_ROWS = 4096
 FINAL = ("x", "alpha", "beta", "S", "r")
 """Columns that get one more row at the end: the state (terminal set) after the last step."""
 _INT = {"qp_iterations", "rounds"}
-_BOOL = {"fallback"}
 _QP_FAILED = frozenset(status.value for status in QPStatus) - SOLVED
 """Statuses of a QP that ran and gave no plan (the others without a plan: missed, lost)."""
+_BOOL = {"fallback", "kept"}
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,10 @@ class StepTally:
         ``k=K: note`` for the steps that have a note (events, not steps: bounded by what happens).
     reasons : list of str
         The fallback reasons seen; their index is the code stored per step and agent ("" is 0).
+    keeps : list of int
+        Per agent, the steps it kept its plan (an event trigger).
+    solve_reasons : dict
+        With an event trigger: why agents solved, reason -> agent-steps.
     """
 
     steps: int = 0
@@ -70,6 +74,8 @@ class StepTally:
     plans_missing: int = 0
     notes: list[str] = field(default_factory=list)
     reasons: list[str] = field(default_factory=lambda: [""])
+    keeps: list[int] = field(default_factory=list)
+    solve_reasons: dict[str, int] = field(default_factory=dict)
 
     def code(self, reason: str) -> int:
         try:
@@ -111,6 +117,8 @@ class StepColumns:
         }
         if rec.r is not None:
             values["r"] = rec.r
+        if rec.solve_reason is not None:
+            values["kept"] = [status == KEPT for status in rec.status]
         if rec.tracking is not None:
             t = rec.tracking
             values.update({"setpoint": t.request.x, "setpoint_u": t.request.u, "reference": t.reference.x,
@@ -144,9 +152,16 @@ class StepColumns:
             self._write(data)
         t = self.tally
         t.steps += 1
-        t.all_solved = t.all_solved and all(s in SOLVED for s in rec.status)
+        t.all_solved = t.all_solved and all(s in PLANNED for s in rec.status)
         t.qp_failed += sum(s in _QP_FAILED for s in rec.status)
-        t.plans_missing += sum(s not in SOLVED and s not in _QP_FAILED for s in rec.status)
+        t.plans_missing += sum(s not in PLANNED and s not in _QP_FAILED for s in rec.status)
+        if rec.solve_reason is not None:
+            if not t.keeps:
+                t.keeps = [0] * len(rec.status)
+            for i, (status, reason) in enumerate(zip(rec.status, rec.solve_reason)):
+                t.keeps[i] += status == KEPT
+                if reason:
+                    t.solve_reasons[reason] = t.solve_reasons.get(reason, 0) + 1
         if rec.note:
             t.notes.append(rec.note if rec.note.startswith("k=") else f"k={rec.k}: {rec.note}")
         self.last = rec

@@ -229,6 +229,8 @@ def _line_fields(rec: StepRecord) -> dict:
     }
     if rec.r is not None:
         line["r"], line["r_next"] = rec.r, rec.r_next
+    if rec.solve_reason is not None:
+        line["solve_reason"] = rec.solve_reason
     if rec.tracking is not None and rec.tracking.active:
         t = rec.tracking
         line.update({"setpoint": t.request.x, "setpoint_u": t.request.u, "reference": t.reference.x,
@@ -310,6 +312,7 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
     step_time = arrays["step_time"][np.isfinite(arrays["step_time"])]
     notes = steps.notes
     verdict = judge(system, arrays, notes, limits or RunLimits(steps=K), inputs_refused, steps.reasons, labels)
+    names = [s.name for s in system.subsystems]
     return {
         "verdict": verdict.word,
         "failures": [f.to_json() for f in verdict.failures],
@@ -337,4 +340,6 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
         "step_time_median_s": float(np.median(step_time)) if step_time.size else None,
         "step_time_p99_s": float(np.percentile(step_time, 99)) if step_time.size else None,
         **({"tracking": tracked} if (tracked := tracking_summary(system, arrays, labels)) is not None else {}),
+        **({"keeps": sum(steps.keeps), "keeps_per_agent": dict(zip(names, steps.keeps)),
+            "solve_reasons": dict(sorted(steps.solve_reasons.items()))} if steps.keeps else {}),
     }

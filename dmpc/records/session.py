@@ -85,6 +85,10 @@ class RunRecorder:
                 "horizon_auto": (self.prepared.design.start or {}).get("horizon") == "auto", "rejected": {}, "rejected_reasons": {},
                 "duplicates": 0, "inputs_refused": {}, "agents": {}, "plant": self.prepared.plant.describe()}
         info.update({k: v for k, v in extra.items() if v is not None})
+        messages = extra.get("messages")
+        if messages is not None:  # a solve is a plan message: the solves whose plans reached the coordinator
+            per = {name: entry["plan_messages"] for name, entry in messages["per_agent"].items()}
+            info["solves"], info["solves_per_agent"] = sum(per.values()), per
         p = self.prepared.protocol
         limits = RunLimits(steps=p.steps, initial_rounds=p.initial_rounds, rounds=p.rounds,
                            initial_tolerance=p.initial_tolerance, tolerance=p.tolerance,

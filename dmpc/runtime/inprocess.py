@@ -86,8 +86,6 @@ def record_run(prepared: Prepared, recorder: RunRecorder) -> tuple[dict, str]:
         summary = recorder.complete(runtime="in-process (centralized, no agents)", failure=result.failure or None)
         return summary, result.failure
     run = simulate(prepared, recorder.on_step)
-    summary = recorder.complete(runtime="in-process", failure=run.coordinator.failure or None, rejected=run.coordinator.rejected,
-                                rejected_reasons=run.coordinator.rejects.reasons, duplicates=run.coordinator.coordinator.duplicates,
-                                inputs_refused=run.coordinator.coordinator.inputs_refused,
-                                agents={a.name: a.report() for a in run.agents})
+    summary = recorder.complete(runtime="in-process", failure=run.coordinator.failure or None,
+                                agents={a.name: a.report() for a in run.agents}, **run.coordinator.counts())
     return summary, run.coordinator.failure

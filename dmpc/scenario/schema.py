@@ -20,7 +20,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Fiel
 
 from dmpc.bus.faults import PLANT_PROCESS
 from dmpc.core.errors import DmpcError
-from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, Coupling, Method, Mode
+from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, TRIGGER_METHODS, Coupling, Method, Mode, Trigger
 
 __all__ = [
     "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "DiscretisationSpec", "DisturbanceSpec",
@@ -510,10 +510,44 @@ class OptionsSpec(_Model):
     deadline: Optional[PosFloat] = Field(
         None, description="Seconds an agent has to deliver its plan; null means wait forever in lockstep "
                           "and dt in realtime. A late plan counts as missed (fallback applied).")
+    trigger: Trigger = Field(
+        "always", description="When an agent solves its QP: 'always' (every step), or 'event': it keeps its shifted "
+                              "plan, sending no plan, while the plan still holds (docs/algorithm.md, \"Event-triggered "
+                              "DMPC\"); with the methods tv-box and tv-box-opt and one Jacobi round per step.")
+    trigger_threshold: PerSubsystem = Field(
+        1e-6, description="trigger: event: the largest prediction error ||x_i(k) - z_i(k|k-1)||_inf (in the states' "
+                          "units) for which an agent keeps its plan; one number, or a map subsystem name -> number "
+                          "(the others 1e-6).")
+    trigger_cost: PerSubsystem = Field(
+        1e-3, description="trigger: event: the most an agent's predicted cost J_i may exceed the best the solve could "
+                          "find for it to keep its plan (the cost's units); one number, or a map subsystem name -> "
+                          "number (the others 1e-3). 0: keep only where the plan is optimal as it stands.")
+    trigger_max_keep: Optional[PosInt] = Field(
+        None, description="trigger: event: the most consecutive steps an agent keeps its plan; null: no limit.")
     setpoint_margin: Annotated[float, Field(strict=True, gt=0, lt=1, allow_inf_nan=False)] = Field(
         0.05, description="Setpoint targets keep this fraction of the way from the origin to every finite bound of "
                           "X_i and U_i free (in (0, 1)): a request closer to a bound is tracked as near as that allows "
                           "(docs/algorithm.md, \"Setpoints\").")
+
+
+def _per_subsystem(value: object) -> object:
+    """A non-negative number, or a map subsystem name -> non-negative number."""
+    value = _as_list(value)
+    if isinstance(value, dict):
+        out = {}
+        for key, v in value.items():
+            number = _number(v, f".{key}")
+            if number < 0:
+                raise SpecError(f".{key}", f"expected a number >= 0, got {_show(v)}")
+            out[_subsystem_name(key)] = number
+        return out
+    number = _number(value, "")
+    if number < 0:
+        raise SpecError("", f"expected a number >= 0, got {_show(value)}")
+    return number
+
+
+PerSubsystem = Annotated[Union[float, dict[str, float]], BeforeValidator(_per_subsystem)]
 
 
 def _components(value: object) -> object:
@@ -711,6 +745,7 @@ class Scenario(_Model):
         _check_time(self)
         _check_disturbance(self.plant.disturbance, subs, index)
         _check_setpoints(self, subs, index)
+        _check_trigger(self, index)
         return self
 
 
@@ -870,3 +905,25 @@ def _check_setpoints(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, 
                                            f"{'X_i' if kind == 'x' else 'U_i'} [{set_spec.lower[c]:g}, "
                                            f"{set_spec.upper[c]:g}] ({scn.subsystem_path(index[spec.subsystem])}."
                                            f"{set_path})")
+
+
+def _check_trigger(scn: Scenario, index: dict[str, int]) -> None:
+    opts = scn.options
+    for field in ("trigger_threshold", "trigger_cost"):
+        for name in (getattr(opts, field) if isinstance(getattr(opts, field), dict) else {}):
+            _check_name(name, index, f"options.{field}.{name}")
+    if opts.trigger != "event":
+        return
+    if opts.method not in TRIGGER_METHODS:
+        raise SpecError("options.trigger", f"'event' works with the methods {' and '.join(TRIGGER_METHODS)} (options."
+                                           f"method is '{opts.method}'): a kept plan ends at the box centre alpha_i(k)")
+    if opts.iterations != 1:
+        raise SpecError("options.trigger", f"'event' needs one Jacobi round per step (options.iterations is "
+                                           f"{opts.iterations}): an agent keeps or solves once per step")
+
+
+def per_subsystem(value: float | dict[str, float], names: list[str], default: float) -> tuple[float, ...]:
+    """A PerSubsystem option as one number per subsystem, in order (``default`` where a map leaves one out)."""
+    if isinstance(value, dict):
+        return tuple(float(value.get(name, default)) for name in names)
+    return tuple(float(value) for _ in names)

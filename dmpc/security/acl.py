@@ -5,9 +5,9 @@ The rules follow the protocol of ``bus.keys`` (``R`` is the run id, ``*`` for an
 =============  =====================================  ==========================================
 role           may publish (put, liveliness token)    may subscribe to
 =============  =====================================  ==========================================
-agent-I        plan/I, ready/I; token alive/agent-I   release, plan/J for J in N_I, control,
-                                                      alive/*
-coordinator    release, control, inputs, telemetry/*,  plan/*, ready/*, state/*, setpoint/*,
+agent-I        plan/I, kept/I, ready/I;               release, plan/J for J in N_I, control,
+               token alive/agent-I                    alive/*
+coordinator    release, control, inputs, telemetry/*,  plan/*, kept/*, ready/*, state/*, setpoint/*,
                setpoint-answer/*;                     alive/*
                token alive/coordinator
                (relays as a router: plan/*, alive/*)
@@ -86,10 +86,11 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     # coordinator may bring in plans and tokens of any role; it is the run's root of trust anyway.
     states = keys.state_prefix(R)
     setpoints, answers = keys.setpoint_prefix(R), keys.setpoint_answer(R, "*")
-    role(keys.COORDINATOR_ROLE, [keys.release(R), keys.control(R), keys.inputs(R), keys.plan(R, "*"),
+    kept = keys.kept(R, "*")
+    role(keys.COORDINATOR_ROLE, [keys.release(R), keys.control(R), keys.inputs(R), keys.plan(R, "*"), kept,
                                  keys.telemetry_prefix(R), answers],
-         [keys.plan(R, "*"), keys.ready(R, "*"), states, setpoints], [alive_all],
-         [keys.plan(R, "*"), keys.ready(R, "*"), states, setpoints])
+         [keys.plan(R, "*"), kept, keys.ready(R, "*"), states, setpoints], [alive_all],
+         [keys.plan(R, "*"), kept, keys.ready(R, "*"), states, setpoints])
     # the plant, or one sensor per subsystem, may publish its own state and nothing else
     for source in keys.state_sources(names):
         subs = [keys.inputs(R), keys.control(R)]
@@ -97,7 +98,7 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     for name in names:
         own = keys.agent_role(name)
         subs = [keys.release(R), keys.control(R)] + [keys.plan(R, j) for j in neighbours[name]]
-        role(own, [keys.plan(R, name), keys.ready(R, name)], subs, [keys.alive(R, own)], subs)
+        role(own, [keys.plan(R, name), keys.kept(R, name), keys.ready(R, name)], subs, [keys.alive(R, own)], subs)
     # an observer only listens: it may declare subscribers to the telemetry and watch tokens
     telemetry = keys.telemetry_prefix(R)
     rules.extend([_rule("observer subscribe", "ingress", ["declare_subscriber"], [telemetry]),

@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 from dmpc.bus.faults import FaultPlan, LinkFault
-from dmpc.core.steps import ProtocolOptions
+from dmpc.core.steps import ProtocolOptions, TriggerOptions
 from dmpc.core.system import CoupledSystem
 from dmpc.offline import ControllerDesign, DesignError, design_from_json, design_gains
 from dmpc.offline.horizon import StartCheck, auto_beta0
 from dmpc.prepared import Prepared, design_digest
 from dmpc.scenario import (
+    OptionsSpec,
     Scenario,
     alpha0_vector,
     build_system,
@@ -16,6 +17,7 @@ from dmpc.scenario import (
     revision_bounds,
     setpoint_entries,
 )
+from dmpc.scenario.schema import per_subsystem
 from dmpc.setup.plant import disturbance_bounds, plant_setup
 from dmpc.setup.start import MethodStart
 
@@ -77,11 +79,23 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
     deadline = opts.deadline
     if deadline is None and opts.mode == "realtime":
         deadline = opts.dt
-    return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design, opts.method),
+    trigger = trigger_options(scenario)
+    return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design, opts.method, trigger),
                     protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario),
                     name=scenario.name, coupling=opts.coupling, method=opts.method, plant=plant,
                     model=_model_report(scenario), setpoints=setpoint_entries(scenario),
-                    setpoint_margin=opts.setpoint_margin)
+                    setpoint_margin=opts.setpoint_margin, trigger=trigger)
+
+
+def trigger_options(scenario: Scenario) -> TriggerOptions:
+    """The scenario's event trigger, its thresholds one per subsystem."""
+    opts = scenario.options
+    names = [s.name for s in scenario.resolved_subsystems()]
+    fields = OptionsSpec.model_fields
+    return TriggerOptions(mode=opts.trigger,
+                          threshold=per_subsystem(opts.trigger_threshold, names, fields["trigger_threshold"].default),
+                          cost=per_subsystem(opts.trigger_cost, names, fields["trigger_cost"].default),
+                          max_keep=opts.trigger_max_keep)
 
 
 def _model_report(scenario: Scenario) -> dict | None:

@@ -1,0 +1,59 @@
+"""The unconstrained optimum of one agent's QP: a lower bound of its cost, without solving it.
+
+QP_i without its inequality rows (input, state and terminal sets) is a least-squares problem in
+the inputs alone once the dynamics are substituted:
+
+    z = Phi x + Gamma v + Psi c,   J(v) = z' Qbar z + v' Rbar v,
+
+so its optimum is s' Qbar s - g' H^-1 g with s = Phi x + Psi c, g = Gamma' Qbar s and
+H = Gamma' Qbar Gamma + Rbar. Dropping constraints can only lower the optimum, so this is a
+lower bound of what the solve would find: an agent that keeps a plan within a margin of it knows
+what keeping may cost at most. H is factorised once; a bound costs two small matrix products.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+
+
+class UnconstrainedBound:
+    """min over v of sum_{t<N} z(t)'Q z(t) + v(t)'R v(t) + z(N)'P z(N) subject to
+    z(0) = x, z(t+1) = A z(t) + B v(t) + c(t) only.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    B : ndarray, shape (n, m)
+    Q, R, P : ndarray
+        Stage and terminal weights, (n, n), (m, m), (n, n).
+    horizon : int
+        N.
+    """
+
+    def __init__(self, A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray,
+                 horizon: int) -> None:
+        n, m, N = B.shape[0], B.shape[1], horizon
+        powers = [np.eye(n)]
+        for _ in range(N):
+            powers.append(A @ powers[-1])
+        phi = np.vstack(powers)  # ((N+1) n, n): z(t) from x
+        gamma = np.zeros(((N + 1) * n, N * m))  # z(t) from v(s), s < t
+        psi = np.zeros(((N + 1) * n, N * n))  # z(t) from c(s), s < t
+        for t in range(1, N + 1):
+            for s in range(t):
+                gamma[t * n:(t + 1) * n, s * m:(s + 1) * m] = powers[t - 1 - s] @ B
+                psi[t * n:(t + 1) * n, s * n:(s + 1) * n] = powers[t - 1 - s]
+        weights = sla.block_diag(*([Q] * N + [P]))
+        self._phi, self._psi = phi, psi
+        self._weighted_gamma = weights @ gamma  # Qbar Gamma
+        self._weights = weights
+        H = gamma.T @ self._weighted_gamma + sla.block_diag(*([R] * N))
+        self._factor = sla.cho_factor(H)
+
+    def cost(self, x: np.ndarray, coupling: np.ndarray | None) -> float:
+        """The unconstrained optimum from x (n,) with feed-forward c (N, n) (None: zeros)."""
+        s = self._phi @ x
+        if coupling is not None:
+            s = s + self._psi @ coupling.reshape(-1)
+        g = self._weighted_gamma.T @ s
+        return float(s @ self._weights @ s - g @ sla.cho_solve(self._factor, g))
