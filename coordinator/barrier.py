@@ -226,6 +226,7 @@ class Coordinator:
         self._prev_round: dict[int, Plan] = {}
         self._round_status: dict[int, PlanMessage] = {}
         self._received_at: dict[int, float] = {}  # per agent: when its plan in _round_status was accepted
+        self._solve_reason: dict[int, str] = {}  # per agent: why it solved in round 0 of the open step (a trigger)
         self._opened_at = math.nan
         self.duplicates = 0
         self.inputs_refused: dict[str, int] = {}
@@ -549,6 +550,8 @@ class Coordinator:
         self._prev_round = dict(self._step_latest)
         for i, msg in self._round.items():
             self._round_status[i] = msg
+            if self.round == 0:  # the trigger decides in round 0; later rounds of the step (k = 0) only refine
+                self._solve_reason[i] = msg.reason
             if self._usable(i, msg):
                 self._step_latest[i] = Plan(msg.k, msg.round, msg.z, msg.v)
         infeasible = [self.names[i] for i, msg in self._round.items() if msg.status not in PLANNED]
@@ -662,6 +665,7 @@ class Coordinator:
         self._step_latest = {}
         self._prev_round = {}
         self._round_status = {}
+        self._solve_reason = {}
         self._received_at = {}
         self._note = ""
         if self.k >= self.options.steps:
@@ -678,7 +682,7 @@ class Coordinator:
         The plan of the step becomes the agent's last plan."""
         msg = self._round_status.get(i)
         plan = self._step_latest.get(i)
-        reason = "" if msg is None else msg.reason
+        reason = self._solve_reason.get(i, "")
         if msg is None:
             status, solve_time, qp_iterations, latency = "missed", math.nan, 0, math.nan
         else:

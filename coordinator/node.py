@@ -159,7 +159,7 @@ class CoordinatorNode:
         self._stop_payload: bytes | None = None
         self.messages = MessageCount()
         bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan, hot=True)
-        bus.subscribe(keys.kept(self.run_id, "*"), self._on_kept, hot=True)
+        bus.subscribe(keys.kept(self.run_id, "*"), self._on_kept)  # not hot: run() waits on the plans, a queued notice wakes it
         bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
         bus.subscribe(keys.setpoint_prefix(self.run_id), self._on_setpoint)
         bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)

@@ -182,3 +182,82 @@ def test_what_a_setpoint_costs_is_a_table_of_its_own():
     assert "## What a setpoint costs" in text
     assert "| 64 | 128 | 384 | 9.0 | 7.0 | 0.03 | 2.5 | 20.50 | 21.70 | 22.90 | 25.20 |" in text
     assert "## What a setpoint costs" not in markdown(_results(), "dmpc bench")  # older results: no table
+
+
+def _trigger_row(trigger: str, cost, solves: int, keeps: int, kbytes: float, closed: float, step: float) -> dict:
+    return {"trigger": trigger, "trigger_cost": cost, "verdict": "ok", "feasible": True, "fallbacks": 0,
+            "closed_loop_cost": closed, "solves": solves, "keeps": keeps, "plan_messages": solves,
+            "kept_notices": keeps, "bytes": int(kbytes * 1e3), "solve_reasons": {"changed": 67} if keeps else {},
+            "step_ms_p50": step, "step_ms_p50_late": step}
+
+
+def _trigger_results() -> dict:
+    """The event trigger's figures: the paper swept, M = 1024 hosted, the carts disturbed."""
+    always = _trigger_row("always", None, 308, 0, 138.0, 102.044, 1.3)
+    paper = {"case": "paper", "M": 4, "steps": 60, "where": "in process", "always": always,
+             "event": [_trigger_row("event", 1e-3, 141, 167, 76.1, 102.044, 1.4),
+                       _trigger_row("event", 10.0, 72, 236, 49.1, 102.0458, 1.3)]}
+    hosted = {"M": 1024, "processes": 8, "agents_per_process": 128, "topology": "mesh", "steps": 40, "late": 20,
+              "calibration_ms": 38.2,
+              "always": {**_trigger_row("always", None, 45000, 0, 21000.0, 32150.0, 380.0), "completed": True,
+                         "startup_s": 27.0},
+              "event": {**_trigger_row("event", 1e-3, 30000, 15000, 15000.0, 32150.0, 250.0), "completed": False,
+                        "reason": "error: agent process 3 | exited\nwith code 1"}}
+    carts = {"case": "carts", "M": 3, "steps": 40, "bound": 1e-5, "seed": 1, "threshold": 1e-6,
+             "always": _trigger_row("always", None, 150, 0, 117.8, 81.7503, 1.9),
+             "event": [{**_trigger_row("event", 1e-3, 150, 0, 119.9, 81.7503, 3.2),
+                        "solve_reasons": {"no plan": 3, "prediction": 117}}]}
+    results = {**_results(), "trigger": {"sweeps": [paper], "hosted": [hosted], "carts": [carts]}}
+    from dmpc.bench.results import headline
+
+    results["headline"] = headline(results)
+    return results
+
+
+def test_the_event_trigger_is_a_section_of_its_own_with_its_headline():
+    text = markdown(_trigger_results(), "dmpc bench")
+    assert "## Event-triggered DMPC against solving at every step" in text
+    assert "| paper | 4 | 60 | always | - | 102.0440 | 1.000000 | 308 | 0 | 308 | 0 | 138.0 | 1.00 | 1.30 | - |" in text
+    assert "| paper | 4 | 60 | event | 0.001 | 102.0440 | 1.000000 | 141 | 167 | 141 | 167 | 76.1 | 0.46 | 1.40 | " \
+           "changed 67 |" in text
+    assert "| paper | 4 | 60 | event | 10 | 102.0458 | 1.000018 | 72 | 236 |" in text
+    assert "| 1024 | 8 | 128 | 40 | always | - | 32150.0000 | 1.000000 | 45000 | 0 | 45000 | 0 | 21000.0 | 1.00 | " \
+           "27.0 | 380.0 | 380.0 | 38.2 |" in text
+    assert "| 1024 | 8 | 128 | 40 | event | did not complete: error: agent process 3 / exited with code 1 |" in text
+    assert "| 1e-05 | 1e-06 | event | 0.001 | 81.7503 | 1.000000 | 150 | 0 | 150 | 0 | 119.9 | 1.00 | 3.20 | " \
+           "no plan 3, prediction 117 |" in text
+    assert "- Event trigger (trigger_cost 0.001), the paper's example in process, 60 steps: 141 QP solves and plan " \
+           "messages against 308 (46%), 55% of the bytes, closed-loop cost x1.000000." in text
+    headline = json.loads(text.split("```json")[1].split("```")[0])
+    assert headline["event_solves_over_always_paper"] == 141 / 308
+    assert "event_step_ms_p50_late_m1024_hosted" not in headline  # the event run did not complete
+    assert "Event-triggered" not in markdown(_results(), "dmpc bench")  # older results: no section
+
+
+def test_both_hosted_step_medians_are_in_the_headline_when_both_runs_completed():
+    results = _trigger_results()
+    results["trigger"]["hosted"][0]["event"].update(completed=True)
+    from dmpc.bench.results import headline
+
+    results["headline"] = headline(results)
+    assert (results["headline"]["always_step_ms_p50_late_m1024_hosted"],
+            results["headline"]["event_step_ms_p50_late_m1024_hosted"]) == (380.0, 250.0)
+    assert "- M = 1024 hosted, from step 20 on: step median 250 ms with the event trigger, 380 ms solving at every " \
+           "step (run just before)." in markdown(results, "dmpc bench")
+
+
+def test_the_plans_measure_the_trigger_quick_on_the_paper_and_the_carts_only(monkeypatch, tmp_path):
+    from dmpc.bench import results as bench_results
+    from dmpc.bench import trigger
+
+    calls: list[tuple] = []
+    monkeypatch.setattr(trigger, "sweep", lambda M, steps, *a, **k: calls.append(("sweep", M, steps)) or {"M": M})
+    monkeypatch.setattr(trigger, "disturbed_pair", lambda b, steps, *a, **k: calls.append(("carts", b, steps)) or {})
+    monkeypatch.setattr(trigger, "hosted_pair", lambda M, K, steps, *a, **k: calls.append(("hosted", M, K, steps)) or {})
+    into: dict = {"sweeps": [], "hosted": [], "carts": []}
+    bench_results.run_trigger(bench_results.QUICK["trigger"], into, tmp_path, tmp_path, lambda label: None)
+    assert calls == [("sweep", 4, 60), ("carts", 1e-5, 40)]
+    calls.clear()
+    bench_results.run_trigger(bench_results.FULL["trigger"], into, tmp_path, tmp_path, lambda label: None)
+    assert ("sweep", 64, 30) in calls and ("hosted", 1024, 128, 40) in calls and ("hosted", 64, 1, 40) in calls
+    assert bench_results.trigger_tasks(bench_results.FULL["trigger"]) == len(calls)

@@ -225,3 +225,83 @@ def test_compare_refuses_a_method_that_does_not_track_the_scenarios_setpoints(tm
 def test_roa_refuses_a_scenario_with_setpoints(tmp_path, monkeypatch, capsys):
     code, _, err = call(monkeypatch, capsys, "roa", str(PAPER), *SETPOINT, "--out", str(tmp_path / "roa"), "--quiet")
     assert code == 2 and "dmpc roa measures where regulation to the origin succeeds" in one_error_line(err)
+
+
+
+# --------------------------------------------------------------------------- compare with triggers
+TRIGGER_KEYS = {"method", "trigger", "trigger_cost", "solves", "keeps", "plan_messages", "kept_notices", "bytes",
+                "solve_reasons", "step_time_median_s"}
+
+
+def test_compare_runs_each_method_with_each_trigger(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "cmp"
+    code, stdout, _ = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(out), "--steps", "20",
+                           "--methods", "tv-box", "ellipsoid", "centralized", "--triggers", "always", "event", "--quiet")
+    assert code == 0
+    data = json.loads((out / "comparison.json").read_text())
+    assert list(data["methods"]) == ["tv-box", "tv-box+event", "ellipsoid", "centralized"]
+    assert data["triggers"] == ["always", "event"]
+    assert set(data["skipped"]) == {"ellipsoid+event", "centralized+event"}
+    assert "works with tv-box and tv-box-opt only" in data["skipped"]["ellipsoid+event"]
+    for name, entry in data["methods"].items():
+        assert set(entry) == ENTRY_KEYS | TRIGGER_KEYS, name
+        assert entry["run_dir"] == name and (out / name / "summary.json").exists()
+        assert entry["step_time_median_s"] > 0
+    always, event = data["methods"]["tv-box"], data["methods"]["tv-box+event"]
+    assert (event["method"], event["trigger"], event["trigger_cost"]) == ("tv-box", "event", 1e-3)
+    assert (always["trigger"], always["trigger_cost"], always["keeps"], always["kept_notices"]) == ("always", None, 0, 0)
+    assert always["solves"] == always["plan_messages"] and event["solves"] == event["plan_messages"]
+    assert event["keeps"] == event["kept_notices"] > 0 and event["solves"] < always["solves"]
+    assert event["bytes"] < always["bytes"] and sum(event["solve_reasons"].values()) > 0
+    assert event["closed_loop_cost"] == pytest.approx(always["closed_loop_cost"], rel=1e-4)
+    assert event["solve_time_median_s"] > 0  # the agent-steps that solved, not the kept ones
+    central = data["methods"]["centralized"]
+    assert central["solves"] is None and central["bytes"] is None
+    header = next(line for line in stdout.splitlines() if "verdict" in line and "feasible" in line)
+    assert header.split()[-8:] == ["/", "always", "solves", "kept", "plans", "kB", "step", "ms"]
+    row = next(line for line in stdout.splitlines() if line.lstrip().startswith("tv-box+event"))
+    assert f" {event['solves']} " in row and f" {event['keeps']} " in row
+    assert "not run: ellipsoid+event (the event trigger works with tv-box and tv-box-opt only)" in stdout
+    assert (out / "figures" / "fig4_cost.png").exists()
+
+
+def test_a_scenario_with_the_event_trigger_runs_the_methods_that_support_it(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "cmp"
+    code, stdout, _ = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(out), "--steps", "20",
+                           "--methods", "tv-box", "fixed-box", "--set", "options.trigger=event",
+                           "--set", "options.trigger_cost=10", "--quiet")
+    assert code == 0
+    data = json.loads((out / "comparison.json").read_text())
+    assert list(data["methods"]) == ["tv-box+event"] and list(data["skipped"]) == ["fixed-box+event"]
+    assert data["triggers"] == ["event"] and data["methods"]["tv-box+event"]["trigger_cost"] == 10
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--triggers", "sometimes"], "--triggers: unknown trigger 'sometimes'"),
+    (["--triggers", "event", "event"], "--triggers: a trigger is listed twice"),
+    (["--methods", "ellipsoid", "centralized", "--triggers", "event"],
+     "--triggers: none of the methods ellipsoid, centralized works with the trigger event"),
+    (["--triggers", "always", "event", "--set", "options.iterations=2"], "'event' needs one Jacobi round per step"),
+])
+def test_compare_bad_triggers_exit_2_before_anything_is_written(tmp_path, monkeypatch, capsys, argv, expected):
+    code, stdout, err = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(tmp_path / "c"), *argv)
+    assert code == 2 and stdout == ""
+    assert expected in one_error_line(err)
+    assert not (tmp_path / "c").exists()
+
+
+def test_the_table_of_a_comparison_with_triggers_has_the_triggers_columns():
+    from dmpc.evaluation.compare import comparison_header, comparison_rows
+
+    base = {"closed_loop_cost": 100.0, "solve_time_median_s": 1e-4, "feasible": True, "fallbacks": 0,
+            "steps_to_1e-3": 12, "verdict": "ok", "failures": []}
+    always = dict(base, method="tv-box", trigger="always", solves=40, keeps=0, plan_messages=40, bytes=20_000,
+                  step_time_median_s=2e-3)
+    event = dict(always, trigger="event", closed_loop_cost=100.002, solves=10, keeps=30, plan_messages=10,
+                 bytes=6_500, step_time_median_s=1.5e-3)
+    data = {"methods": {"tv-box": always, "tv-box+event": event}, "triggers": ["always", "event"], "skipped": {}}
+    assert comparison_header(data)[-6:] == ["/ always", "solves", "kept", "plans", "kB", "step ms"]
+    rows = comparison_rows(data)
+    assert rows[0][-6:] == ["-", "40", "0", "40", "20.0", "2.00"]
+    assert rows[1][-6:] == ["1.000020", "10", "30", "10", "6.5", "1.50"]
+    assert len(comparison_rows({"methods": {"tv-box": base}})[0]) == 8  # without triggers: as before

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.e2e
 
 U_BAR = 2.5
 LEASE = 1.0  # seconds: --lease given to every process of the manual runs
-DT = 0.1  # realtime step period of the manual runs
+DT = 0.05  # realtime step period of the manual runs
 CONVERGED = 1e-5  # ||x(K)||_inf at the end; see test_loss_in_realtime_falls_back_and_converges
 
 
@@ -132,7 +132,7 @@ def test_loss_in_realtime_falls_back_and_converges(tmp_path):
 # the first release, as often as the processes take to start, and each copy draws from its
 # link's stream (docs/faults.md says so); a plan lost between agents shows in no record, and
 # makes its receiver wait half the deadline, a wait that a loaded machine can stretch.
-SAME_STREAMS = ["--set", "seed=3", "--set", "steps=15", "--set", "options.deadline=1",
+SAME_STREAMS = ["--set", "seed=3", "--set", "steps=15", "--set", "options.deadline=0.5",
                 "--set", "faults.links=[" + ", ".join(f'{{source: plant, target: "{name}", loss: 0.2}}'
                                                       for name in "1234") + "]"]
 
@@ -141,7 +141,7 @@ def test_simulate_and_run_drop_the_same_messages(tmp_path):
     """docs/faults.md: while a link carries the same messages in the same order, `dmpc simulate`
     and `dmpc run` drop the same ones.
 
-    Lockstep with a 1 s deadline, so that only a lost message, never a slow process, makes a
+    Lockstep with a 0.5 s deadline, so that only a lost message, never a slow process, makes a
     plan miss it. A release lost on its way to agent I means no solve by I in that round and a
     fallback for I at the deadline: the fallbacks, step by step and agent by agent, and the
     number of QPs each agent solved must be the same in both runs.

@@ -17,7 +17,7 @@ from tests.e2e_helpers import DMPC, ROOT, pid_alive, run_cli, step_lines, wait_f
 
 pytestmark = pytest.mark.e2e
 
-REALTIME = ["--set", "options.mode=realtime", "--set", "options.dt=0.1"]
+REALTIME = ["--set", "options.mode=realtime", "--set", "options.dt=0.05"]
 
 
 def _tmpfs(folder: Path, options: str):

@@ -215,7 +215,7 @@ def test_agent_with_another_design_is_named_by_plant_and_agent(procs, tmp_path):
     agents = [procs.start("agent", "scenarios/paper.yaml", "--id", str(i), *common,
                           *(["--set", "horizon=12"] if i == 4 else []), log=f"agent{i}.log") for i in range(1, 5)]
     plant = procs.start("plant", "scenarios/paper.yaml", "--out", str(tmp_path / "out"), "--quiet", "--run-id", "t7",
-                        "--listen", ep, "--startup-timeout", "10", log="plant.log")
+                        "--listen", ep, "--startup-timeout", "6", log="plant.log")
     plant.wait(timeout=90)
     for a in agents:
         a.wait(timeout=30)
@@ -224,7 +224,7 @@ def test_agent_with_another_design_is_named_by_plant_and_agent(procs, tmp_path):
     assert "a design differs from this plant's" in text
     assert f"agent 4 uses design {agent_digest} (scenario 'paper', horizon 12)" in text
     assert f"this plant uses design {plant_digest} (scenario 'paper', horizon 10)" in text
-    assert "agents 4 not ready within 10 s" in text and "Traceback" not in text
+    assert "agents 4 not ready within 6 s" in text and "Traceback" not in text
     assert agents[3].returncode == 1
     line = procs.log(agents[3])
     assert "agent 4: its design differs from the coordinator's" in line and agent_digest in line and plant_digest in line

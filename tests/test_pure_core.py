@@ -42,6 +42,7 @@ CORE_MODULES = {
     "dmpc.agents": ROOT / "agents" / "__init__.py",
     "dmpc.agents.local_qp": ROOT / "agents" / "local_qp.py",
     "dmpc.agents.controller": ROOT / "agents" / "controller.py",
+    "dmpc.agents.trigger": ROOT / "agents" / "trigger.py",  # keep the shifted plan or solve
     "dmpc.plant": ROOT / "plant" / "__init__.py",
     "dmpc.coordinator": ROOT / "coordinator" / "__init__.py",
     "dmpc.coordinator.barrier": ROOT / "coordinator" / "barrier.py",  # the coordinator's state machine

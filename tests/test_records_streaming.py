@@ -126,7 +126,7 @@ def test_report_draws_a_run_that_ended_before_its_arrays_from_the_log(tmp_path, 
     code, stdout, _ = call(monkeypatch, capsys, "report", str(out))
     assert code == 0
     assert "drawn from the 29 steps of steps.jsonl" in stdout and "incomplete and is skipped" in stdout
-    assert len(list((out / "figures").glob("*.png"))) == 5
+    assert len(list((out / "figures").glob("*.png"))) == 6
 
 
 def test_the_files_a_run_was_loaded_from_are_not_written_again(tmp_path, paper_records):

@@ -1,4 +1,4 @@
-"""dmpc report: the five figures of a run folder and of a comparison folder, and bad input."""
+"""dmpc report: the six figures of a run folder, the five of a comparison folder, and bad input."""
 from __future__ import annotations
 
 import json
@@ -15,6 +15,9 @@ from dmpc.plots.style import use_log
 from tests.helpers.cli import call
 
 FIGURE_FILES = [f"{name}.png" for name in report.FIGURES]
+"""A comparison folder's figures: the paper's five."""
+RUN_FIGURE_FILES = [f"{name}.png" for name in report.RUN_FIGURES]
+"""A run folder's: the paper's five and the solves per step."""
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -70,34 +73,35 @@ def png_size(path: Path) -> tuple[int, int]:
     return struct.unpack(">II", head[16:24])
 
 
-def assert_five_figures(folder: Path) -> None:
-    assert sorted(p.name for p in folder.glob("*.png")) == sorted(FIGURE_FILES)
-    for name in FIGURE_FILES:
+def assert_figures(folder: Path, files: list[str] = RUN_FIGURE_FILES) -> None:
+    """``folder`` holds exactly ``files`` (a run folder's figures by default), each a drawn PNG."""
+    assert sorted(p.name for p in folder.glob("*.png")) == sorted(files)
+    for name in files:
         width, height = png_size(folder / name)
         assert 500 <= width <= 2600 and 300 <= height <= 2600, (name, width, height)
         assert (folder / name).stat().st_size > 15_000, name  # not a blank canvas
     import matplotlib.image as mpimg
 
-    for name in FIGURE_FILES:
+    for name in files:
         pixels = mpimg.imread(folder / name)
         assert pixels.std() > 0.02, name  # something is drawn
 
 
 # ----------------------------------------------------------------------------- one run
-def test_report_draws_the_five_figures_of_a_run(paper_run, tmp_path, monkeypatch, capsys):
+def test_report_draws_the_six_figures_of_a_run(paper_run, tmp_path, monkeypatch, capsys):
     out = tmp_path / "figs"
     code, stdout, err = call(monkeypatch, capsys, "report", str(paper_run), "--out", str(out))
     assert code == 0, err
-    assert_five_figures(out)
-    assert [Path(line).name for line in stdout.split()] == FIGURE_FILES
+    assert_figures(out)
+    assert [Path(line).name for line in stdout.split()] == RUN_FIGURE_FILES
 
 
 def test_report_defaults_to_the_figures_subfolder(tmp_path, paper_run):
     run = tmp_path / "run"
     shutil.copytree(paper_run, run, ignore=shutil.ignore_patterns("figures"))
     paths = report.draw(run)
-    assert [p.parent for p in paths] == [run / "figures"] * 5
-    assert_five_figures(run / "figures")
+    assert [p.parent for p in paths] == [run / "figures"] * 6
+    assert_figures(run / "figures")
 
 
 def test_figure1_draws_one_box_per_step_where_they_are_recorded(paper_run):
@@ -129,7 +133,7 @@ def test_without_scenario_yaml_the_design_gives_the_dimensions(tmp_path, paper_r
     shutil.copytree(paper_run, run_dir, ignore=shutil.ignore_patterns("figures", "scenario.yaml"))
     run = report.load_run(run_dir)
     assert run.n == [2] * 4 and run.m == [1] * 4 and run.lower == [None] * 4
-    assert_five_figures(Path(report.draw_run(run_dir)[0]).parent)
+    assert_figures(Path(report.draw_run(run_dir)[0]).parent)
 
 
 def test_report_and_load_run_read_a_folder_alike(tmp_path, paper_run):
@@ -170,6 +174,75 @@ def test_ellipse_outline_is_the_projection_of_the_ellipsoid(n):
         d[:2] = [np.cos(angle), np.sin(angle)]
         support = np.sqrt(level * d @ Pinv @ d)
         assert abs((d[:2] @ pts).max() - support) < 1e-3 * support
+
+
+# ----------------------------------------------------------------------------- figure 6: solves per step
+@pytest.fixture(scope="module")
+def event_run(tmp_path_factory) -> Path:
+    return simulate(tmp_path_factory.mktemp("report-event") / "run", {"options.trigger": "event"})
+
+
+def test_figure6_of_a_run_without_trigger_shows_every_agent_solving_at_every_step(paper_run):
+    run = report.load_run(paper_run)
+    summary = json.loads((paper_run / "summary.json").read_text())
+    solves = run.solves
+    assert solves.trigger == "always" and not solves.kept_recorded
+    np.testing.assert_array_equal(solves.counts(), np.tile([4, 0, 0], (30, 1)))
+    assert solves.notes() == [f"no event trigger: every agent solves at every step ({summary['solves']} QP solves)",
+                              f"k = 0 took {summary['rounds_k0']} Jacobi rounds, a solve per agent in each"]
+    plt = report._pyplot()
+    fig = report._solves(plt, run, "t")
+    try:
+        top, bottom = fig.axes
+        assert [c.get_label() for c in top.collections] == ["solved its QP"]
+        np.testing.assert_array_equal(bottom.images[0].get_array(), np.zeros((4, 30)))
+    finally:
+        plt.close(fig)
+
+
+def test_figure6_of_an_event_triggered_run_counts_the_solves_and_kept_plans_of_the_records(event_run):
+    """Per step, the agents that solved and kept are trajectory.npz's; over the run (with every
+    round of k = 0) summary.json's solves and keeps; the lower panel is the agents' steps."""
+    npz = np.load(event_run / "trajectory.npz")
+    summary = json.loads((event_run / "summary.json").read_text())
+    run = report.load_run(event_run)
+    solves = run.solves
+    assert solves.trigger == "event" and solves.kept_recorded
+    counts = solves.counts()
+    np.testing.assert_array_equal(counts[:, 1], npz["kept"].sum(axis=1))
+    np.testing.assert_array_equal(counts[:, 0] + counts[:, 1], 4)  # no fallback
+    assert (counts[:, 0] * npz["rounds"]).sum() == summary["solves"] and counts[:, 1].sum() == summary["keeps"]
+    reasons = ", ".join(f"{r} {n}" for r, n in summary["solve_reasons"].items())
+    assert solves.notes()[:2] == [f"event trigger: {summary['solves']} QP solves, {summary['keeps']} plans kept",
+                                  f"agents solved for: {reasons}"]
+    plt = report._pyplot()
+    fig = report._solves(plt, run, "t")
+    try:
+        top, bottom = fig.axes
+        assert [c.get_label() for c in top.collections] == ["solved its QP", "kept its plan"]
+        np.testing.assert_array_equal(bottom.images[0].get_array(), npz["kept"].T.astype(int))
+        assert [t.get_text() for t in fig.legends[0].get_texts()] == ["solved its QP", "kept its plan", "4 agents"]
+        assert f"{summary['solves']} QP solves" in fig.get_suptitle()
+    finally:
+        plt.close(fig)
+
+
+def test_figure6_of_a_run_drawn_from_its_step_log_has_the_kept_plans_of_its_arrays(tmp_path, event_run):
+    """A run that ended before its arrays were written: steps.jsonl's statuses give the same kept plans."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(event_run, run_dir, ignore=shutil.ignore_patterns("figures", "trajectory.npz"))
+    from_log, from_arrays = report.load_run(run_dir).solves, report.load_run(event_run).solves
+    assert from_log.kept_recorded and from_log.counts()[:, 1].sum() > 0
+    np.testing.assert_array_equal(from_log.counts(), from_arrays.counts())
+    assert not any("do not say which plans were kept" in note for note in from_log.notes())
+    assert len(report.draw_run(run_dir)) == 6
+
+
+def test_figure6_notes_break_into_lines_between_notes():
+    from dmpc.plots.solves import _lines
+
+    assert _lines(["a" * 50, "b" * 30, "c" * 20], 90) == ["a" * 50 + "; " + "b" * 30, "c" * 20]
+    assert _lines(["word " * 30], 40)[0] == ("word " * 8).strip()
 
 
 # ----------------------------------------------------------------------------- bad input
@@ -231,7 +304,7 @@ def test_unwritable_output_exits_2(tmp_path, paper_run, monkeypatch, capsys):
 def test_report_draws_the_comparison_figures(comparison_folder, monkeypatch, capsys):
     code, stdout, err = call(monkeypatch, capsys, "report", str(comparison_folder))
     assert code == 0, err
-    assert_five_figures(comparison_folder / "figures")
+    assert_figures(comparison_folder / "figures", FIGURE_FILES)
     assert "not drawn" not in stdout
 
 
@@ -271,7 +344,7 @@ def test_comparison_without_levels_says_so_and_still_draws(tmp_path, comparison_
     assert notes == ["ellipsoid: no levels r in its trajectory.npz, ellipses not drawn"]
     code, _, err = call(monkeypatch, capsys, "report", str(folder), "--out", str(tmp_path / "figs"))
     assert code == 0, err
-    assert_five_figures(tmp_path / "figs")
+    assert_figures(tmp_path / "figs", FIGURE_FILES)
 
 
 def test_a_method_without_its_run_folder_is_skipped_and_named(tmp_path, comparison_folder, monkeypatch, capsys):
@@ -280,7 +353,7 @@ def test_a_method_without_its_run_folder_is_skipped_and_named(tmp_path, comparis
     code, stdout, err = call(monkeypatch, capsys, "report", str(folder))
     assert code == 0, err
     assert "not drawn: fixed-box" in stdout
-    assert_five_figures(folder / "figures")
+    assert_figures(folder / "figures", FIGURE_FILES)
 
 
 # ----------------------------------------------------------------------------- the real methods
@@ -299,9 +372,10 @@ def test_comparison_of_the_real_methods(tmp_path, paper_run, monkeypatch, capsys
     assert [s.method for s in specs] == ["tv-box", "ellipsoid"] and notes == []
     code, _, err = call(monkeypatch, capsys, "report", str(tmp_path))
     assert code == 0, err
-    assert_five_figures(tmp_path / "figures")
+    assert_figures(tmp_path / "figures", FIGURE_FILES)
     for method in ("ellipsoid-adaptive", "centralized"):  # a single-method run of each draws too
-        assert len(report.draw_run(tmp_path / method)) == 5
+        assert len(report.draw_run(tmp_path / method)) == 6
+    assert report.load_run(tmp_path / "centralized").solves.notes()[0].startswith("centralized: one QP")
 
 
 def test_report_on_the_output_of_dmpc_compare(tmp_path, monkeypatch, capsys):
@@ -316,7 +390,7 @@ def test_report_on_the_output_of_dmpc_compare(tmp_path, monkeypatch, capsys):
     code, stdout, err = call(monkeypatch, capsys, "report", str(out))
     assert code == 0, err
     assert "not drawn" not in stdout
-    assert_five_figures(out / "figures")
+    assert_figures(out / "figures", FIGURE_FILES)
 
 
 # ----------------------------------------------------------------------------- setpoints

@@ -157,6 +157,9 @@ def test_report_figures_are_labelled_like_result_plot(rooms_run):
     assert _labels(plane) == ({"Ta [K]"}, {"Tm [K]", "t [s] (colour of the terminal sets)"})
     line = states.axes[0].get_lines()[0]
     assert line.get_xdata()[1] == 300.0  # seconds, not steps
+    solves = figures._solves(plt, run, "solves")
+    assert _labels(solves) == ({"t [s]"}, {"agents", "agent"})
+    assert solves.axes[1].images[0].get_extent()[:2] == [0.0, 300.0 * run.u.shape[0]]  # the steps in seconds
     plt.close("all")
 
 

@@ -542,3 +542,93 @@ def test_a_page_that_follows_a_run_shows_targets_from_the_first_step_that_has_th
     np.testing.assert_array_equal(x1[10:], npz["target"][10:, 0])
     page.slider.value = 5
     assert len(targets.data["k"]) == 6 and len(page.doc.get_model_by_name("cost").data["k"]) == 6
+
+
+# -------------------------------------------------------------------------------------- event trigger
+@pytest.fixture(scope="module")
+def triggered(tmp_path_factory) -> Path:
+    """The run folder of the paper's example simulated with ``options.trigger: event`` (its
+    summary with the solves and keeps per agent, as ``dmpc simulate`` writes it)."""
+    import dmpc
+    from dmpc.scenario import load_scenario
+
+    out = tmp_path_factory.mktemp("watch-trigger") / "run"
+    dmpc.simulate(load_scenario(PAPER, {"options.trigger": "event"}), out=out)
+    return out
+
+
+def test_the_description_and_the_steps_of_a_triggered_run_carry_the_trigger(triggered, recorded):
+    folder = triggered
+    assert folder_meta(folder).trigger == "event" and folder_meta(recorded[0]).trigger == "always"
+    older = {key: value for key, value in meta_json(_prepared(folder), "r").items()
+             if key != "trigger"}
+    assert RunMeta.from_json(older).trigger == "always"  # a description from before the trigger
+    msg = decode(encode("step", "r-1", step=lines(folder)[17], plant={}), "r-1")["step"]
+    assert len(msg["solve_reason"]) == 4
+    state = fed(folder, 0)
+    assert state.add_step(msg)
+    bad = dict(lines(folder)[18], solve_reason=["", "cost"])
+    assert not state.add_step(bad) and "solve_reason has 2 entries, the run 4" in state.problems[0]
+
+
+def _prepared(folder: Path):
+    from dmpc.scenario import load_scenario
+    from dmpc.setup import prepare
+
+    return prepare(load_scenario(folder / "scenario.yaml"))
+
+
+def test_plan_text_says_whether_an_agent_solved_or_kept_its_plan_and_why():
+    from dmpc.watch.views import REASONS, plan_text
+
+    assert plan_text("kept", "") == "kept" and plan_text("solved", "changed") == "solved: changed"
+    assert plan_text("solved", "") == "solved" and plan_text("missed", "") == "-"
+    assert plan_text("infeasible", "cost") == "solved: cost"  # it solved; its QP failed
+    from dmpc.agents.trigger import REASONS as TRIGGER_REASONS
+
+    assert set(REASONS) == set(TRIGGER_REASONS)  # every reason the trigger gives has its meaning
+
+
+def test_agent_table_of_a_triggered_run_shows_who_solved_and_why_and_counts_as_the_summary(triggered):
+    """At each step, per agent: kept, or solved and why (steps.jsonl's status and solve_reason);
+    QP solves (every round of k = 0) and plans kept up to the step, at the end summary.json's."""
+    from bokeh.document import Document
+
+    from dmpc.watch.page import WatchPage
+    from dmpc.watch.views import plan_text
+
+    folder = triggered
+    summary = json.loads((folder / "summary.json").read_text())
+    steps = lines(folder)
+    state = fed(folder)
+    state.set_summary(summary, "run folder")
+    page = WatchPage(Document(), state, live=False)
+    assert page.table["solves"] == list(summary["solves_per_agent"].values())
+    assert page.table["keeps"] == list(summary["keeps_per_agent"].values())
+    assert "event trigger" in page.header.text
+    assert f"{summary['solves']} / {summary['keeps']}" in page.summary.text
+    reasons = ", ".join(f"{r}: {c}" for r, c in summary["solve_reasons"].items())
+    assert f"why agents solved up to this step: {reasons}" in page.agents.text
+    page.slider.value = 0
+    assert page.table["plan"] == [plan_text("solved", r) for r in steps[0]["solve_reason"]]
+    assert page.table["solves"] == [steps[0]["rounds"]] * 4 and page.table["keeps"] == [0] * 4
+    changed = next(k for k, line in enumerate(steps) if "kept" in line["status"] and "changed" in line["solve_reason"])
+    page.slider.value = changed
+    line = steps[changed]
+    assert page.table["plan"] == ["kept" if s == "kept" else f"solved: {r}"
+                                  for s, r in zip(line["status"], line["solve_reason"])]
+    kept = [sum(s == "kept" for s in (step["status"][i] for step in steps[:changed + 1])) for i in range(4)]
+    assert page.table["keeps"] == kept
+    assert "title='a neighbour&#x27;s plan changed its feed-forward" in page.agents.text
+    assert page.table["solve_ms"][line["status"].index("kept")] == "-"
+
+
+def test_agent_table_of_a_run_without_trigger_has_no_trigger_columns(recorded):
+    from bokeh.document import Document
+
+    from dmpc.watch.page import WatchPage
+
+    folder, _ = recorded
+    page = WatchPage(Document(), fed(folder), live=False)
+    assert "plan" not in page.table and "dmpc-plan" not in page.agents.text and "QP solves" not in page.agents.text
+    assert "event trigger" not in page.header.text

@@ -1,13 +1,15 @@
-"""The live view in a real browser (headless Chromium): a live ``dmpc run --watch`` and the replay
-of a finished run folder.
+"""The live view in a real browser (headless Chromium): a live ``dmpc run --watch`` and the replays
+of finished run folders (the paper's example, a run with setpoints, an event-triggered run).
 
 Chromium and its driver come from Debian (``apt-get install chromium chromium-driver``; .ci/run
 installs them). Without them these tests are skipped, except in CI, where they fail.
 With ``DMPC_WATCH_SCREENSHOTS=DIR`` the tests save what the browser showed into DIR
-(docs/figures/watch-live.png, watch-end.png and watch-replay.png were made so).
+(docs/figures/watch-live.png, watch-end.png, watch-replay.png, watch-setpoints.png and
+watch-trigger.png were made so).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -67,8 +69,21 @@ def screenshot(driver, name: str) -> None:
         driver.save_screenshot(str(Path(folder) / name))
 
 
+@contextlib.contextmanager
+def replaying(driver, folder: Path, last_step: int):
+    """``dmpc watch`` of the run folder, its page open in ``driver`` with the slider at the run's last step."""
+    proc = start("watch", str(folder))
+    try:
+        url = Lines(proc).wait_for(r"live view: (http://127\.0\.0\.1:\d+/)", 60).group(1)
+        driver.get(url)
+        wait_until(lambda: model(driver, "step-slider", "m.value") == last_step, 30, what="the slider at the end")
+        yield proc
+    finally:
+        stop(proc)
+
+
 def test_live_view_follows_a_run_and_ends_with_its_summary(tmp_path):
-    """``dmpc run --watch`` on the paper's example, 40 steps in real time (0.25 s a step, 5 % of
+    """``dmpc run --watch`` on the paper's example, 40 steps in real time (0.15 s a step, 5 % of
     the messages lost, so that some plans miss their deadline): the page's step counter advances
     while the run goes, and at the end the page shows summary.json's final cost, verdict and
     fallbacks per agent; its agent table, counted from the steps the page received over the
@@ -77,7 +92,7 @@ def test_live_view_follows_a_run_and_ends_with_its_summary(tmp_path):
     out = tmp_path / "run"
     with chromium() as driver:  # first: the browser takes seconds to start on a small machine
         proc = start("run", "scenarios/paper.yaml", "--watch", "--out", str(out), "--quiet", "--steps", "40",
-                     "--set", "options.mode=realtime", "--set", "options.dt=0.25", "--loss", "0.05", "--seed", "3")
+                     "--set", "options.mode=realtime", "--set", "options.dt=0.15", "--loss", "0.05", "--seed", "3")
         try:
             lines = Lines(proc)
             url = lines.wait_for(r"live view: (http://127\.0\.0\.1:\d+/)$", 60).group(1)
@@ -129,11 +144,7 @@ def test_replay_shows_the_numbers_of_trajectory_npz_at_a_chosen_step(paper_simul
 
     npz = np.load(paper_simulated / "trajectory.npz")
     with chromium() as driver:
-        proc = start("watch", str(paper_simulated))
-        try:
-            url = Lines(proc).wait_for(r"live view: (http://127\.0\.0\.1:\d+/)", 60).group(1)
-            driver.get(url)
-            wait_until(lambda: model(driver, "step-slider", "m.value") == 30, 30, what="the slider at the end")
+        with replaying(driver, paper_simulated, 30) as proc:
             handle = driver.execute_script(
                 "function find(n) { if (n.classList && n.classList.contains('noUi-handle')) return n;"
                 " for (const c of [...(n.shadowRoot ? n.shadowRoot.childNodes : []), ...n.childNodes]) {"
@@ -159,8 +170,6 @@ def test_replay_shows_the_numbers_of_trajectory_npz_at_a_chosen_step(paper_simul
             wait_until(lambda: model(driver, "step-slider", "m.value") >= k + 5, 20, what="the replay advancing")
             proc.send_signal(signal.SIGINT)
             assert proc.wait(timeout=10) == 0
-        finally:
-            stop(proc)
 
 
 def test_replay_of_a_run_with_setpoints_draws_its_targets(tmp_path):
@@ -174,11 +183,7 @@ def test_replay_of_a_run_with_setpoints_draws_its_targets(tmp_path):
     dmpc.simulate("scenarios/rooms.yaml", out=folder, steps=144)  # the night: setback, then the warm-up
     npz = np.load(folder / "trajectory.npz")
     with chromium(height=1700) as driver:
-        proc = start("watch", str(folder))
-        try:
-            url = Lines(proc).wait_for(r"live view: (http://127\.0\.0\.1:\d+/)", 60).group(1)
-            driver.get(url)
-            wait_until(lambda: model(driver, "step-slider", "m.value") == 144, 30, what="the slider at the end")
+        with replaying(driver, folder, 144) as proc:
             for i in range(5):
                 name = f"room{i + 1}"
                 targets = model(driver, f"targets-{name}",
@@ -199,5 +204,53 @@ def test_replay_of_a_run_with_setpoints_draws_its_targets(tmp_path):
             screenshot(driver, "watch-setpoints.png")
             proc.send_signal(signal.SIGINT)
             assert proc.wait(timeout=10) == 0
-        finally:
-            stop(proc)
+
+
+PLAN_TITLES = """
+function find(node, out) {
+  if (node.classList && node.classList.contains('dmpc-plan')) out.push(node.getAttribute('title') || '');
+  for (const child of [...(node.shadowRoot ? node.shadowRoot.childNodes : []), ...node.childNodes]) find(child, out);
+  return out;
+}
+return find(document.body, []);
+"""
+"""The tooltips of the agent table's plan cells, in page order."""
+
+
+def test_replay_of_an_event_triggered_run_shows_who_solved_and_why(tmp_path):
+    """``dmpc watch`` on the paper's example with ``options.trigger: event``: the agent table says,
+    per agent at the chosen step, whether it kept its plan or solved and why (steps.jsonl's status
+    and solve_reason, the reason's meaning as the cell's tooltip), and counts its QP solves and
+    plans kept up to that step; at the end, summary.json's counts."""
+    require_chromium()
+    import dmpc
+    from dmpc.scenario import load_scenario
+
+    folder = tmp_path / "event"
+    dmpc.simulate(load_scenario(ROOT / "scenarios" / "paper.yaml", {"options.trigger": "event"}), out=folder, steps=40)
+    steps = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
+    summary = json.loads((folder / "summary.json").read_text())
+    with chromium() as driver:
+        with replaying(driver, folder, 40) as proc:
+            wait_until(lambda: class_text(driver, "dmpc-solves-keeps") is not None, 10, what="the summary")
+            assert class_text(driver, "dmpc-solves-keeps") == f"{summary['solves']} / {summary['keeps']}"
+            assert class_texts(driver, "dmpc-plan") == ["kept"] * 4  # the run has settled: nobody solves
+            assert class_texts(driver, "dmpc-solves") == [str(n) for n in summary["solves_per_agent"].values()]
+            assert class_texts(driver, "dmpc-keeps") == [str(n) for n in summary["keeps_per_agent"].values()]
+            k = max(k for k, line in enumerate(steps) if "kept" in line["status"] and "changed" in line["solve_reason"])
+            driver.execute_script(f"Bokeh.documents[0].get_model_by_name('step-slider').value = {k}")
+            wait_until(lambda: class_text(driver, "dmpc-readout-k") == str(k), 10, what=f"the readout at k = {k}")
+            line = steps[k]
+            expected = ["kept" if s == "kept" else f"solved: {r}" for s, r in zip(line["status"], line["solve_reason"])]
+            wait_until(lambda: class_texts(driver, "dmpc-plan") == expected, 10, what=f"the plans at k = {k}")
+            titles = driver.execute_script(PLAN_TITLES)
+            assert [bool(t) for t in titles] == [s != "kept" for s in line["status"]]
+            assert all("neighbour's plan changed" in t for t, r in zip(titles, line["solve_reason"]) if r == "changed")
+            solves = [sum(step["rounds"] for step in steps[:k + 1] if step["status"][i] not in ("kept", "missed"))
+                      for i in range(4)]
+            keeps = [sum(step["status"][i] == "kept" for step in steps[:k + 1]) for i in range(4)]
+            assert class_texts(driver, "dmpc-solves") == [str(n) for n in solves]
+            assert class_texts(driver, "dmpc-keeps") == [str(n) for n in keeps]
+            screenshot(driver, "watch-trigger.png")
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(timeout=10) == 0

@@ -1,6 +1,6 @@
 """An observer and its page change nothing in a run (real processes over Zenoh, headless Chromium).
 
-The paper's example runs in real time (a step every 40 ms, 150 steps, a deadline of 1 s that no
+The paper's example runs in real time (a step every 40 ms, 100 steps, a deadline of 1 s that no
 plan comes near, so that the trajectory stays the deterministic one). The same run is made
 without an observer, with ``dmpc watch --connect`` attached, and with the observer and its page
 open in a browser from before the first step, until the observer is stopped, then killed, and
@@ -27,7 +27,7 @@ from tests.helpers.watch_runs import HandRun, prepare_inputs
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
-STEPS = 150
+STEPS = 100
 OPTIONS = {"options.mode": "realtime", "options.dt": 0.04, "options.deadline": 1.0, "steps": STEPS}
 # "within noise" on a shared 2-core machine: consecutive runs without an observer differ by up to
 # about 40 % in their step-time quantiles here

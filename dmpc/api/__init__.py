@@ -10,11 +10,11 @@ import contextlib
 import re
 import secrets
 import tempfile
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Union
 
 from dmpc.api.result import Result, load_run
+from dmpc.api.scenarios import ScenarioLike, load_scenario
 from dmpc.api.setpoints import LiveRun, SetpointError, SetpointRefused, SetpointUnanswered, StartHook, setpoint
 from dmpc.bus import keys
 from dmpc.core.errors import DmpcError
@@ -26,14 +26,9 @@ from dmpc.records.session import RunRecorder
 from dmpc.runtime.hosting import check_per_process, group_agents
 from dmpc.runtime.inprocess import record_run
 from dmpc.runtime.launcher import default_topology, launch
-from dmpc.scenario import Scenario, validate_scenario
-from dmpc.scenario import load_scenario as load_file
-from dmpc.scenario.state_space import from_state_spaces
 from dmpc.setup import prepare
 from dmpc.setup.plant import function_reference, load_plant_function, with_plant_function
 from dmpc.terminal.exit_codes import EXIT_INTERRUPTED, EXIT_OK
-
-ScenarioLike = Union[str, Path, Mapping, Scenario]
 
 __all__ = ["LiveRun", "RunError", "SetpointError", "SetpointRefused", "SetpointUnanswered", "design", "load_run",
            "load_scenario", "run", "setpoint", "simulate"]
@@ -45,41 +40,6 @@ class RunError(DmpcError, RuntimeError):
     A run that completes with constraint violations is not an error: its ``Result.verdict`` is
     ``failed``.
     """
-
-
-def load_scenario(source: ScenarioLike, /, **overrides) -> "Scenario":
-    """A validated scenario from a YAML file, a mapping (numpy arrays allowed) or a Scenario.
-
-    In a mapping, a subsystem, a coupling or a family's subsystem or coupling may give a
-    python-control model, ``system=control.ss(...)``, in place of A and B: its labels name the
-    states and inputs, and its time base sets ``time`` and ``dt``
-    (:mod:`dmpc.scenario.state_space`).
-
-    Parameters
-    ----------
-    source : str, Path, mapping or Scenario
-    **overrides
-        Fields to change, as ``--set`` does: ``steps=10``, ``horizon=5``; a nested field with
-        ``__`` (``options__method="centralized"``) or a dotted key (``**{"family.M": 16}``).
-
-    Returns
-    -------
-    Scenario
-
-    Raises
-    ------
-    dmpc.scenario.ScenarioError
-        One line naming the field at fault.
-    """
-    pairs = {key.replace("__", "."): value for key, value in overrides.items()}
-    if isinstance(source, Scenario):
-        if not pairs:
-            return source
-        data = source.model_dump(mode="python")
-        return validate_scenario({k: v for k, v in data.items() if v is not None}, pairs, source=source.name)
-    if isinstance(source, Mapping):
-        return validate_scenario(from_state_spaces(source), pairs)
-    return load_file(source, pairs)
 
 
 def _prepared(scenario: ScenarioLike, method: str | None = None, steps: int | None = None):

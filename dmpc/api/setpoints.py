@@ -9,6 +9,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Optional, Union
 
+from dmpc.api.scenarios import load_scenario
 from dmpc.bus.messages import SetpointAnswer
 from dmpc.bus.session import BusError
 from dmpc.core.errors import DmpcError
@@ -89,8 +90,6 @@ def setpoint(connect: str | Sequence[str], run_id: str, subsystem: str, x: Compo
     """
     spec = None
     if scenario is not None:
-        from dmpc.api import load_scenario  # the package's loader; the API imports this module first
-
         spec = scenario_subsystem(load_scenario(scenario), subsystem)
     x_values = components(x, "x", "x", subsystem, spec)
     u_values = components(u, "u", "u", subsystem, spec)

@@ -95,3 +95,11 @@ def closed_loop(step: Callable[[np.ndarray], np.ndarray], system, steps: int) ->
 def workdir() -> tempfile.TemporaryDirectory:
     return tempfile.TemporaryDirectory(prefix="dmpc-bench-")
 
+
+def cell(value, spec: str = ".3g") -> str:
+    """A table cell: "-" for None, a float in format ``spec``, anything else as text."""
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return format(value, spec)
+    return str(value)

@@ -7,7 +7,8 @@ from pathlib import Path
 
 from rich.progress import Progress
 
-from dmpc.bench import common, measures, setpoints
+from dmpc.bench import common, measures, setpoints, trigger
+from dmpc.bench.common import cell
 from dmpc.bench.scale import HEADER as SCALE_HEADER
 from dmpc.bench.scale import markdown_row as scale_markdown_row
 from dmpc.bench.scale import scale_row
@@ -16,12 +17,18 @@ from dmpc.terminal.console import stderr_console
 FULL = {"qp_horizons": [5, 10, 20], "qp_repeat": 20,
         "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
         "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
-        "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)], "setpoints": [4, 64, 256]}
+        "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)], "setpoints": [4, 64, 256],
+        "trigger": {"sweeps": [(4, 60), (64, 30)], "hosted": [(64, 1, 40), (1024, 128, 40)],
+                    "carts": [1e-7, 1e-6, 1e-5, 1e-3], "carts_steps": 80}}
 QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
-         "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": [], "setpoints": [4]}
+         "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": [], "setpoints": [4],
+         "trigger": {"sweeps": [(4, 60)], "hosted": [], "carts": [1e-5], "carts_steps": 40}}
 """``floor_sets``: floor and run alternated that many times at M = 4 (once at larger M). ``scale``:
 rows (M, agents per process, steps) of the chain run with agents hosted many to a process.
-``setpoints``: the M of the chain for what a setpoint costs (:mod:`dmpc.bench.setpoints`)."""
+``setpoints``: the M of the chain for what a setpoint costs (:mod:`dmpc.bench.setpoints`).
+``trigger`` (:mod:`dmpc.bench.trigger`): ``sweeps``, (M, steps) in this process over the cost
+threshold; ``hosted``, (M, agents per process, steps) as processes; ``carts``, the disturbance
+bounds of the carts, run ``carts_steps`` steps."""
 
 HISTORY_HEADING = "## History: earlier measurements (dated, not regenerated)"
 """Everything of a report from this heading on is written by hand and kept when it is regenerated."""
@@ -30,10 +37,11 @@ HISTORY_HEADING = "## History: earlier measurements (dated, not regenerated)"
 def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
     plan = QUICK if quick else FULL
     tasks = (len(plan["qp_horizons"]) + len(plan["runtime"]) + 3 * len(plan["baselines"]) + len(plan["design"])
-             + len(plan["scale"]) + len(plan["setpoints"]))
+             + len(plan["scale"]) + len(plan["setpoints"]) + trigger_tasks(plan["trigger"]))
     results: dict = {"machine": common.machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                      "quick": quick, "qp": [], "runtime": [], "inprocess": [], "central_osqp": [],
-                     "central_cvxpy": [], "design": [], "scale": [], "setpoints": []}
+                     "central_cvxpy": [], "design": [], "scale": [], "setpoints": [],
+                     "trigger": {"sweeps": [], "hosted": [], "carts": []}}
     started = time.monotonic()
     with Progress(console=stderr_console(), transient=True, disable=not show_progress) as progress, \
             common.workdir() as tmp:
@@ -66,10 +74,29 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
         for M in plan["setpoints"]:
             results["setpoints"].append({**setpoints.target_costs(M, root), **setpoints.step_costs(M, root=root)})
             step(f"setpoints M={M}")
+        run_trigger(plan["trigger"], results["trigger"], Path(tmp), root, step)
     results["seconds"] = time.monotonic() - started
     results["machine"]["load_average_end"] = common.load_average()
     results["headline"] = headline(results)
     return results
+
+
+def trigger_tasks(plan: dict) -> int:
+    """The progress steps of the event trigger's measures."""
+    return len(plan["sweeps"]) + len(plan["hosted"]) + len(plan["carts"])
+
+
+def run_trigger(plan: dict, into: dict, workdir: Path, root: Path, step) -> None:
+    """The event trigger against ``always`` (:mod:`dmpc.bench.trigger`), appended to ``into``."""
+    for M, steps in plan["sweeps"]:
+        into["sweeps"].append(trigger.sweep(M, steps, workdir, root))
+        step(f"trigger sweep M={M}")
+    for bound in plan["carts"]:
+        into["carts"].append(trigger.disturbed_pair(bound, plan["carts_steps"], workdir, root))
+        step(f"trigger carts w={bound:g}")
+    for M, per_process, steps in plan["hosted"]:
+        into["hosted"].append(trigger.hosted_pair(M, per_process, steps, workdir, root))
+        step(f"trigger hosted M={M}")
 
 
 def headline(results: dict) -> dict:
@@ -91,7 +118,28 @@ def headline(results: dict) -> dict:
         "startup_s_m128": _at(results["runtime"], 128, "startup_s"),
         "design_s_m1024": _at(results["design"], 1024, "design_s"),
         "step_ms_p50_m1024_hosted": _at(results.get("scale", []), 1024, "step_ms_p50"),
+        **trigger_headline(results.get("trigger") or {}),
     }
+
+
+def trigger_headline(measured: dict) -> dict:
+    """The event trigger's figures of the headline: on the paper's example in process (cost
+    threshold :data:`~dmpc.bench.trigger.DEFAULT_COST`), its QP solves, bytes and closed-loop cost
+    over ``always``'s; at M = 1024 hosted, both step medians from step 20 on."""
+    paper = next((s for s in measured.get("sweeps", []) if s["M"] == 4), None)
+    event = trigger.at_cost(paper) if paper else None
+    hosted = next((h for h in measured.get("hosted", []) if h["M"] == 1024), None)
+    both = hosted is not None and hosted["always"].get("completed") and hosted["event"].get("completed")
+    out: dict = {}
+    if paper and event:
+        always = paper["always"]
+        out.update(event_solves_over_always_paper=event["solves"] / always["solves"],
+                   event_bytes_over_always_paper=event["bytes"] / always["bytes"],
+                   event_cost_over_always_paper=event["closed_loop_cost"] / always["closed_loop_cost"])
+    if both:
+        out.update(always_step_ms_p50_late_m1024_hosted=hosted["always"]["step_ms_p50_late"],
+                   event_step_ms_p50_late_m1024_hosted=hosted["event"]["step_ms_p50_late"])
+    return out
 
 
 def _at(rows: list[dict], M: int, key: str):
@@ -160,14 +208,6 @@ def targets(results: dict) -> list[tuple[str, str, str]]:
     return rows
 
 
-def _fmt(value, digits: int = 3) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.{digits}g}"
-    return str(value)
-
-
 def markdown(results: dict, command: str) -> str:
     """The report: when and where, the headline and the targets first, then every table.
 
@@ -207,10 +247,10 @@ def markdown(results: dict, command: str) -> str:
         floor = r.get("floor") if r.get("floor", {}).get("completed") else {}
         if r.get("completed"):
             lines.append(f"| {r['M']} | {r.get('topology', '-')} | {r['steps']} | {r['wall_s']:.0f} | "
-                         f"{r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | {_fmt(floor.get('step_ms_p50'))} | "
-                         f"{_fmt(floor.get('step_ms_p99'))} | {_fmt(r.get('over_floor_p50'))} | "
-                         f"{_fmt(r.get('over_floor_p99'))} | "
-                         f"{r['bus_share_p50']:.0%} | {_fmt(r['rss_mb_per_agent'])} | {_fmt(r['pss_mb_per_agent'])} | "
+                         f"{r['step_ms_p50']:.2f} | {r['step_ms_p99']:.2f} | {cell(floor.get('step_ms_p50'))} | "
+                         f"{cell(floor.get('step_ms_p99'))} | {cell(r.get('over_floor_p50'))} | "
+                         f"{cell(r.get('over_floor_p99'))} | "
+                         f"{r['bus_share_p50']:.0%} | {cell(r['rss_mb_per_agent'])} | {cell(r['pss_mb_per_agent'])} | "
                          f"{r['rss_mb_total']:.0f} | {r['pss_mb_total']:.0f} |")
         else:
             reason = " ".join(str(r.get("reason", "?")).split())[:160].replace("|", "/")
@@ -231,10 +271,10 @@ def markdown(results: dict, command: str) -> str:
         M = ip["M"]
         mp = multi.get(M)
         mp_ms = mp["step_ms_p50"] if mp else None
-        lines.append(f"| {M} | {_fmt(mp_ms)} | {ip['step_ms_p50']:.3g} | {co['step_ms_p50']:.3g} | "
+        lines.append(f"| {M} | {cell(mp_ms)} | {ip['step_ms_p50']:.3g} | {co['step_ms_p50']:.3g} | "
                      f"{cc['step_ms_p50']:.3g} | {ip['closed_loop_cost']:.4g} | {co['closed_loop_cost']:.4g} | "
-                     f"{cc['closed_loop_cost']:.4g} | {_fmt(mp_ms / cc['step_ms_p50'] if mp_ms else None)} | "
-                     f"{_fmt(mp_ms / co['step_ms_p50'] if mp_ms else None)} |")
+                     f"{cc['closed_loop_cost']:.4g} | {cell(mp_ms / cc['step_ms_p50'] if mp_ms else None)} | "
+                     f"{cell(mp_ms / co['step_ms_p50'] if mp_ms else None)} |")
     lines += ["", "## Offline design against M (chain family, LMI gains, horizon 10)", "",
               "LMI: gains and their check; X^f: the terminal set (redundancy decided on each row's neighbourhood); "
               "start LP: the start's feasibility at the horizon; design: all of it. X^f plain: one LP over the whole "
@@ -243,11 +283,12 @@ def markdown(results: dict, command: str) -> str:
               "same Omega, sigma0 |", "|---|---|---|---|---|---|---|---|---|---|"]
     for d in results["design"]:
         same = "-" if "same_omega" not in d else ("yes" if d["same_omega"] and d["same_sigma0"] else "NO")
-        lines.append(f"| {d['M']} | {d['lmi_s']:.2f} | {d['terminal_set_s']:.2f} | {_fmt(d.get('start_check_s'))} | "
-                     f"{_fmt(d.get('design_s'))} | {d['omega_rows']} | {d['t_star']} | {_fmt(d.get('sigma0'), 6)} | "
-                     f"{_fmt(d.get('terminal_set_plain_s'))} | {same} |")
+        lines.append(f"| {d['M']} | {d['lmi_s']:.2f} | {d['terminal_set_s']:.2f} | {cell(d.get('start_check_s'))} | "
+                     f"{cell(d.get('design_s'))} | {d['omega_rows']} | {d['t_star']} | {cell(d.get('sigma0'), '.6g')} | "
+                     f"{cell(d.get('terminal_set_plain_s'))} | {same} |")
     lines += scale_lines(results.get("scale", []))
     lines += setpoint_lines(results.get("setpoints", []))
+    lines += trigger_lines(results.get("trigger") or {})
     return "\n".join(lines) + "\n"
 
 
@@ -283,10 +324,31 @@ def headline_lines(results: dict) -> list[str]:
     if h.get("rss_mb_per_agent") is not None:
         said.append(f"- Largest resident memory of an agent process: {h['rss_mb_per_agent']:.0f} MB; largest M run: "
                     f"{h['max_agents_run']}.")
+    said += trigger_said(results)
     rows = targets(results)
     judged = [ok for _, _, ok in rows if ok != "-"]
     said.append(f"- Targets met: {judged.count('yes')} of {len(judged)} measured (table below).")
     return ["## Headline", "", *said, "", "```json", json.dumps(h, indent=2), "```", ""]
+
+
+def trigger_said(results: dict) -> list[str]:
+    """The headline's lines of the event trigger (none when it was not measured)."""
+    h = results["headline"]
+    said = []
+    if h.get("event_solves_over_always_paper") is not None:
+        paper = next(s for s in results["trigger"]["sweeps"] if s["M"] == 4)
+        event = trigger.at_cost(paper)
+        assert event is not None
+        said.append(f"- Event trigger (trigger_cost {trigger.DEFAULT_COST:g}), the paper's example in process, "
+                    f"{paper['steps']} steps: {event['solves']} QP solves and plan messages against "
+                    f"{paper['always']['solves']} ({h['event_solves_over_always_paper']:.0%}), "
+                    f"{h['event_bytes_over_always_paper']:.0%} of the bytes, closed-loop cost x"
+                    f"{h['event_cost_over_always_paper']:.6f}.")
+    if h.get("event_step_ms_p50_late_m1024_hosted") is not None:
+        said.append(f"- M = 1024 hosted, from step {trigger.LATE} on: step median "
+                    f"{h['event_step_ms_p50_late_m1024_hosted']:.0f} ms with the event trigger, "
+                    f"{h['always_step_ms_p50_late_m1024_hosted']:.0f} ms solving at every step (run just before).")
+    return said
 
 
 def scale_lines(rows: list[dict]) -> list[str]:
@@ -321,6 +383,40 @@ def setpoint_lines(rows: list[dict]) -> list[str]:
               f"{r['terminal_set_ms']:.2f} | {r['governor_ms']:.1f} | {r['plain_ms_p50']:.2f} | "
               f"{r['tracked_ms_p50']:.2f} | {r['change_step_ms']:.2f} | {r['around_target_ms_p50']:.2f} |"
               for r in rows]]
+
+
+def trigger_lines(measured: dict) -> list[str]:
+    """The section of the event trigger against ``always`` (:mod:`dmpc.bench.trigger`)."""
+    if not any(measured.get(key) for key in ("sweeps", "hosted", "carts")):
+        return []
+    lines = ["", "## Event-triggered DMPC against solving at every step", "",
+             "Each case runs with `options.trigger: always`, then with `event` on the same design "
+             "(`dmpc.bench.trigger`). Solves: QP solves whose plans reached the coordinator, one plan message "
+             "each; kept: plans kept instead, one kept notice each; kB: the bytes of both. Cost: the closed-loop "
+             "cost; / always: over the `always` run's. Step median: k >= 1 (k = 0 iterates Jacobi), in this process "
+             "the wall time between steps' completions (records written), as processes the plant's step time. "
+             "Solved for: why agents solved rather than kept (the first test that failed: `no plan`, `changed` "
+             "neighbours' feed-forward, `prediction` error above the threshold, `constraints`, `cost`)."]
+    if measured.get("sweeps"):
+        lines += ["", "### In this process, over the cost threshold", "",
+                  f"`trigger_cost` swept; the prediction threshold is the default ({trigger.THRESHOLD:g}).", "",
+                  *trigger.table(trigger.SWEEP_HEADER, [r for s in measured["sweeps"] for r in trigger.sweep_rows(s)])]
+    if measured.get("hosted"):
+        lines += ["", "### As processes, agents hosted many to a process", "",
+                  "The chain designed once, run with `dmpc run --agents-per-process K` with `always` and right "
+                  f"after with `event` (trigger_cost {trigger.DEFAULT_COST:g}). Step median from k = "
+                  f"{trigger.LATE}: once the states have settled. Speed figure: this machine's, just before the pair "
+                  "(ms for 10^6 Python additions).", "",
+                  *trigger.table(trigger.HOSTED_HEADER, [r for h in measured["hosted"] for r in trigger.hosted_rows(h)])]
+    if measured.get("carts"):
+        steps = measured["carts"][0]["steps"]
+        lines += ["", "### The carts with a disturbance", "",
+                  f"`scenarios/carts.yaml`, {steps} steps, `plant.disturbance`: uniform, |w| <= the bound on every "
+                  f"state, seed {measured['carts'][0]['seed']}; `event` with `trigger_threshold` (the prediction error "
+                  f"kept) and trigger_cost {trigger.DEFAULT_COST:g}. A disturbance above the threshold makes the "
+                  "trigger fire; below it, a disturbance of a neighbour still changes an agent's feed-forward.", "",
+                  *trigger.table(trigger.CARTS_HEADER, [r for d in measured["carts"] for r in trigger.carts_rows(d)])]
+    return lines
 
 
 def kept_history(previous: str) -> str:
@@ -372,6 +468,12 @@ def plot(results: dict, folder: Path) -> list[Path]:
         paths.append(folder / "step_time.png")
         fig.savefig(paths[-1], dpi=120)
         plt.close(fig)
+    sweeps = (results.get("trigger") or {}).get("sweeps") or []
+    if sweeps:
+        from dmpc.plots.tradeoff import draw_tradeoff  # start-up time: the figure only where the sweep ran
+
+        drawn = draw_tradeoff(sweeps, folder)
+        paths += [drawn] if drawn is not None else []
     if results["design"]:
         fig, ax = plt.subplots(figsize=(6, 4))
         d = results["design"]

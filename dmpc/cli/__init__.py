@@ -32,11 +32,12 @@ scenario_app.command("schema")(local.scenario_schema)
 
 
 def _expand_multi_values(args: list[str]) -> list[str]:
-    """``--N 3 5 8`` -> ``--N 3 --N 5 --N 8`` (and the same for ``--methods``): click options take
+    """``--N 3 5 8`` -> ``--N 3 --N 5 --N 8`` (and the same for ``--methods`` and ``--triggers``): click options take
     one value each, so the values that follow these options are given one option each."""
     import re
 
-    takes = {"--N": re.compile(r"^[+-]?\d+(\.\d*)?$"), "--methods": re.compile(r"^[a-z][a-z0-9-]*$")}
+    takes = {"--N": re.compile(r"^[+-]?\d+(\.\d*)?$"), "--methods": re.compile(r"^[a-z][a-z0-9-]*$"),
+             "--triggers": re.compile(r"^[a-z][a-z0-9-]*$")}
     out: list[str] = []
     current, given = None, 0
     for arg in args:

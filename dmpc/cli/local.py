@@ -79,7 +79,8 @@ def simulate(scenario: ScenarioArg,
 
 def report(run_dir: Annotated[Path, typer.Argument(help="A run folder, or a folder with comparison.json from 'dmpc compare'.", show_default=False)],
            out: Annotated[Optional[Path], typer.Option("--out", help="Folder for the PNG files (default: RUN_DIR/figures).")] = None) -> None:
-    """Draw the paper's five figures (terminal sets, states, inputs, J, S) from a run or comparison folder."""
+    """Draw the paper's five figures (terminal sets, states, inputs, J, S) from a run or comparison folder, and
+    for a run folder the agents' solves per step."""
     from dmpc.plots.report import ReportError, draw  # start-up time: the figures (matplotlib) only for `dmpc report`
 
     notes: list[str] = []
@@ -93,27 +94,34 @@ def report(run_dir: Annotated[Path, typer.Argument(help="A run folder, or a fold
         print(path)
 
 
+TriggersOpt = Annotated[Optional[list[str]], typer.Option("--triggers", help="Run each method with each trigger, e.g. --triggers always event (default: the scenario's own; event only with tv-box and tv-box-opt).", show_default=False)]
+
+
 def compare(scenario: ScenarioArg,
             out: Annotated[Path, typer.Option("--out", help="Folder to write: DIR/<method>/ run folders and DIR/comparison.json.")],
             steps: Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps per run (default: the scenario's).")] = None,
             methods: MethodsOpt = None, set_: SetOpt = None,
-            quiet: Annotated[bool, typer.Option("--quiet", help="No progress bars.")] = False) -> None:
+            quiet: Annotated[bool, typer.Option("--quiet", help="No progress bars.")] = False,
+            triggers: TriggersOpt = None) -> None:
     """Run every method on the same scenario in this process, compare them, and draw the figures."""
-    from dmpc.evaluation.compare import (  # start-up time: the comparison only for `dmpc compare`
-        COMPARISON_HEADER,
-        COMPARISON_LEGEND,
+    from dmpc.evaluation.compare import compare as run_compare  # start-up time: the comparison only for `dmpc compare`
+    from dmpc.evaluation.compare import (  # start-up time: as above
+        comparison_header,
+        comparison_legend,
         comparison_rows,
         cost_ratios,
     )
-    from dmpc.evaluation.compare import compare as run_compare  # start-up time: as above
     from dmpc.methods import DEFAULT_METHOD  # start-up time: as above
 
     scn = load_scenario_file(scenario, set_, steps)
     methods = checked_methods(methods, bool(scn.setpoints))
-    data = run_compare(scn, out, methods, show_progress=not quiet)
+    _check_triggers(methods, triggers, scn)
+    data = run_compare(scn, out, methods, show_progress=not quiet, triggers=triggers)
     console = stdout_console()
-    console.print(table(f"methods on '{data['scenario']}'", COMPARISON_HEADER, comparison_rows(data)))
-    console.print(COMPARISON_LEGEND)
+    console.print(table(f"methods on '{data['scenario']}'", comparison_header(data), comparison_rows(data)))
+    console.print(comparison_legend(data))
+    for name, why in data.get("skipped", {}).items():
+        console.print(f"not run: {name} ({why})")
     ratio = cost_ratios(data).get(DEFAULT_METHOD)
     if ratio is not None:
         console.print(f"closed-loop cost {DEFAULT_METHOD} / centralized = {ratio:.4f}")
@@ -123,6 +131,20 @@ def compare(scenario: ScenarioArg,
     if failed:
         error_line(f"verdict failed for {', '.join(failed)} (reasons in {', '.join(str(out / m / SUMMARY) for m in failed)})")
         raise typer.Exit(EXIT_VERDICT)
+
+
+def _check_triggers(methods: list[str], triggers: list[str] | None, scn) -> None:
+    """InputError (``--triggers: ...``) for triggers that are unknown, listed twice, not possible
+    with the scenario's options, or leave no method to run."""
+    from dmpc.evaluation.compare import (  # start-up time: the comparison only for `dmpc compare`
+        check_triggers,
+        runnable,
+    )
+
+    try:
+        runnable(methods, check_triggers(triggers, scn))
+    except ValueError as exc:
+        raise InputError(f"--triggers: {exc}") from None
 
 
 def _draw_comparison_figures(out: Path) -> None:

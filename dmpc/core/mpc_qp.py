@@ -52,6 +52,10 @@ POLISH_FAILED = -1
 
 POLISH_RETRY_REFINE_ITER = 25
 
+DENSE_ROWS = 60_000
+"""A QP whose constraint matrix has at most this many entries (rows x variables) also keeps it
+dense, for :meth:`MpcQP.violations` (about 0.5 MB at most)."""
+
 DEFAULT_SETTINGS = dict(
     eps_abs=1e-7,
     eps_rel=1e-7,
@@ -175,6 +179,9 @@ class MpcQP:
         self._cold = False
         self._base = (self._l.copy(), self._u.copy())  # the stage bounds around the origin
         self._offset: tuple[np.ndarray, np.ndarray] | None = None
+        # violations() multiplies a plan by the rows at every kept step: dense is faster while small
+        self._dense_rows = self._rows.toarray() if self._rows.shape[0] * self._rows.shape[1] <= DENSE_ROWS else None
+        self._scale_stage_bounds()
 
     def set_offset(self, x_s: np.ndarray | None, u_s: np.ndarray | None) -> None:
         """Move the stage rows to deviation coordinates around a steady state: U - u_s, X - x_s.
@@ -188,6 +195,7 @@ class MpcQP:
             self._offset = None
             for rows, _, _ in self._stages:
                 self._l[rows], self._u[rows] = self._base[0][rows], self._base[1][rows]
+            self._scale_stage_bounds()
             return
         if self._offset is not None and np.array_equal(self._offset[0], x_s) and np.array_equal(self._offset[1], u_s):
             return
@@ -196,6 +204,7 @@ class MpcQP:
             moved = np.tile(H @ shift, steps)
             self._l[rows] = np.clip(self._base[0][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
             self._u[rows] = np.clip(self._base[1][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
+        self._scale_stage_bounds()
 
     def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
               terminal_upper: np.ndarray) -> QPSolution:
@@ -248,21 +257,35 @@ class MpcQP:
         """How far the plan z (N+1, n), v (N, m) is from a feasible point of the QP that
         :meth:`solve` would solve with the same arguments: the largest residual of its dynamics
         rows, and the largest excess over its input, state and terminal rows, each relative to
-        max(1, |bound|). Both 0 for a feasible plan; nothing is solved."""
-        nz = self._nz
-        rows = self._rows @ np.concatenate([z.reshape(-1), v.reshape(-1)])
-        target = np.empty(nz)
-        target[:self.n] = -x
-        target[self.n:] = 0.0 if coupling is None else -coupling.reshape(-1)
-        dynamics = float(np.max(np.abs(rows[:nz] - target) / np.maximum(1.0, np.abs(target))))
-        lower, upper = self._l.copy(), self._u.copy()
-        lower[self._terminal] = np.clip(terminal_lower, -OSQP_INFTY, OSQP_INFTY)
-        upper[self._terminal] = np.clip(terminal_upper, -OSQP_INFTY, OSQP_INFTY)
-        lower, upper, rest = lower[nz:], upper[nz:], rows[nz:]
-        with np.errstate(invalid="ignore"):
-            excess = np.maximum((lower - rest) / np.maximum(1.0, np.abs(lower)),
-                                (rest - upper) / np.maximum(1.0, np.abs(upper)))
-        return dynamics, float(max(np.max(excess, initial=0.0), 0.0))
+        max(1, |bound|). Both 0 for a feasible plan, both inf for a plan that is not finite;
+        nothing is solved."""
+        nz, n = self._nz, self.n
+        w = np.concatenate((z.reshape(-1), v.reshape(-1)))
+        if not np.isfinite(w).all():
+            return float("inf"), float("inf")
+        rows = self._dense_rows @ w if self._dense_rows is not None else self._rows @ w
+        target = np.zeros(nz)
+        np.negative(x, out=target[:n])
+        if coupling is not None:
+            np.negative(coupling.reshape(-1), out=target[n:])
+        dynamics = float((np.abs(rows[:nz] - target) / np.maximum(1.0, np.abs(target))).max())
+        lower, upper, lower_scale, upper_scale = self._row_bounds  # the input and state rows set, the terminal's now
+        terminal = slice(self._terminal.start - nz, self._terminal.stop - nz)
+        np.minimum(np.maximum(terminal_lower, -OSQP_INFTY, out=lower[terminal]), OSQP_INFTY, out=lower[terminal])
+        np.minimum(np.maximum(terminal_upper, -OSQP_INFTY, out=upper[terminal]), OSQP_INFTY, out=upper[terminal])
+        np.maximum(1.0, np.abs(lower[terminal]), out=lower_scale[terminal])
+        np.maximum(1.0, np.abs(upper[terminal]), out=upper_scale[terminal])
+        rest = rows[nz:]
+        excess = np.maximum((lower - rest) / lower_scale, (rest - upper) / upper_scale)
+        return dynamics, max(float(excess.max()), 0.0) if excess.size else 0.0
+
+    def _scale_stage_bounds(self) -> None:
+        """The bounds of the rows after the dynamics and their scales max(1, |bound|), for
+        :meth:`violations`: the input and state rows' change only with :meth:`set_offset`, the
+        terminal rows' are set by each call."""
+        rows = slice(self._nz, None)
+        lower, upper = self._l[rows].copy(), self._u[rows].copy()
+        self._row_bounds = (lower, upper, np.maximum(1.0, np.abs(lower)), np.maximum(1.0, np.abs(upper)))
 
     def _run(self, l: np.ndarray, u: np.ndarray):
         """Set the bounds l, u (each (rows,)) and solve; OSQP's info and primal solution (vars,)."""

@@ -8,6 +8,7 @@ compute alone, and it is only ever used after missed plans.)
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +38,25 @@ def relative_to(plan: Plan | None, x_s: np.ndarray, u_s: np.ndarray) -> Plan | N
     return Plan(plan.k, plan.round, plan.z - x_s, plan.v - u_s)
 
 
+def gamma_powers(Gamma: np.ndarray, N: int) -> np.ndarray:
+    """Gamma^0 .. Gamma^N, shape (N + 1, n, n), each the product of the one before and Gamma.
+
+    Kept for the last few matrices asked for: an agent, its neighbours and the coordinator ask
+    for the same few at every step, and the same floats make the same kept plans."""
+    return _powers(np.asarray(Gamma, float).tobytes(), Gamma.shape[0], N)
+
+
+@functools.lru_cache(maxsize=4096)
+def _powers(data: bytes, n: int, N: int) -> np.ndarray:
+    Gamma = np.frombuffer(data, dtype=float).reshape(n, n)
+    powers = np.empty((N + 1, n, n))
+    powers[0] = np.eye(n)
+    for t in range(1, N + 1):
+        powers[t] = Gamma @ powers[t - 1]
+    powers.setflags(write=False)
+    return powers
+
+
 def kept_plan(plan: Plan, k: int, x_now: np.ndarray, end: np.ndarray, Gamma: np.ndarray, K: np.ndarray) -> Plan:
     """The plan made at step k - 1, kept at step k: shifted by one step, corrected for the
     prediction error e = x_now - z(k|k-1) by the terminal controller, and ended at ``end``.
@@ -57,10 +77,7 @@ def kept_plan(plan: Plan, k: int, x_now: np.ndarray, end: np.ndarray, Gamma: np.
     """
     N = plan.v.shape[0]
     e = x_now - plan.z[1]
-    correction = np.empty((N + 1, e.size))
-    correction[0] = e
-    for t in range(1, N + 1):
-        correction[t] = Gamma @ correction[t - 1]
+    correction = gamma_powers(Gamma, N) @ e  # (N + 1, n): Gamma^t e
     z = np.empty_like(plan.z, dtype=float)
     z[:N] = plan.z[1:] + correction[:N]
     z[N] = end + correction[N]

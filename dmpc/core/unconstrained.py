@@ -8,7 +8,7 @@ the inputs alone once the dynamics are substituted:
 so its optimum is s' Qbar s - g' H^-1 g with s = Phi x + Psi c, g = Gamma' Qbar s and
 H = Gamma' Qbar Gamma + Rbar. Dropping constraints can only lower the optimum, so this is a
 lower bound of what the solve would find: an agent that keeps a plan within a margin of it knows
-what keeping may cost at most. H is factorised once; a bound costs two small matrix products.
+what keeping may cost at most. The optimum is a quadratic form in x and c, formed once; a bound costs one small matrix product.
 """
 from __future__ import annotations
 
@@ -44,16 +44,19 @@ class UnconstrainedBound:
                 gamma[t * n:(t + 1) * n, s * m:(s + 1) * m] = powers[t - 1 - s] @ B
                 psi[t * n:(t + 1) * n, s * n:(s + 1) * n] = powers[t - 1 - s]
         weights = sla.block_diag(*([Q] * N + [P]))
-        self._phi, self._psi = phi, psi
-        self._weighted_gamma = weights @ gamma  # Qbar Gamma
-        self._weights = weights
-        H = gamma.T @ self._weighted_gamma + sla.block_diag(*([R] * N))
-        self._factor = sla.cho_factor(H)
+        weighted_gamma = weights @ gamma  # Qbar Gamma
+        H = gamma.T @ weighted_gamma + sla.block_diag(*([R] * N))
+        # the optimum is a quadratic form in w = [x; c]: s = L w, J* = s'(Qbar - Qbar Gamma H^-1 Gamma' Qbar) s
+        lift = np.hstack([phi, psi])
+        reduced = weights - weighted_gamma @ sla.cho_solve(sla.cho_factor(H), weighted_gamma.T)
+        form = lift.T @ reduced @ lift
+        self._form = 0.5 * (form + form.T)
+        self._n = n
 
     def cost(self, x: np.ndarray, coupling: np.ndarray | None) -> float:
         """The unconstrained optimum from x (n,) with feed-forward c (N, n) (None: zeros)."""
-        s = self._phi @ x
-        if coupling is not None:
-            s = s + self._psi @ coupling.reshape(-1)
-        g = self._weighted_gamma.T @ s
-        return float(s @ self._weights @ s - g @ sla.cho_solve(self._factor, g))
+        if coupling is None:
+            head = self._form[:self._n, :self._n]
+            return float(x @ head @ x)
+        w = np.concatenate((x, coupling.reshape(-1)))
+        return float(w @ self._form @ w)

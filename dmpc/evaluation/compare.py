@@ -13,15 +13,35 @@ The offline design is computed once and reused by every method (they share it by
 | ``fallbacks`` | fallbacks applied (agent-steps) |
 | ``solve_time_median_s`` | median QP solve time |
 | ``verdict``, ``failures`` | the run's verdict (``ok`` or ``failed``) and the kinds of its failures |
+
+With triggers (``triggers=[...]``, ``dmpc compare --triggers always event``, or a scenario whose own
+``options.trigger`` is ``event``), each method runs with each trigger, the event trigger only with
+the methods of :data:`~dmpc.core.steps.TRIGGER_METHODS`. An entry is then named ``<method>`` for
+``always`` and ``<method>+<trigger>`` otherwise (its run folder too), and it also holds:
+
+| key | meaning |
+|---|---|
+| ``method``, ``trigger`` | the run's method and trigger |
+| ``trigger_cost`` | ``options.trigger_cost`` of an ``event`` run (a number or a map by subsystem), else null |
+| ``solves`` | QP solves whose plans reached the coordinator (``summary.json``), null for ``centralized`` |
+| ``keeps`` | plans kept instead of solved (0 with ``always``), null for ``centralized`` |
+| ``plan_messages``, ``kept_notices``, ``bytes`` | the agents' answers that reached the coordinator and their bytes |
+| ``solve_reasons`` | why agents solved rather than kept, counted (empty with ``always``) |
+| ``step_time_median_s`` | median wall time of a step in this process, steps 1 to K-1 (k = 0 iterates Jacobi) |
+
+and ``comparison.json`` has ``triggers`` (those run) and ``skipped`` (an entry name and why it did
+not run, for each pair left out).
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from dmpc.core.steps import SETPOINT_METHODS
+from dmpc.core.steps import SETPOINT_METHODS, TRIGGER_METHODS, TRIGGERS
 from dmpc.methods import METHOD_NAMES, method_spec
 from dmpc.records.files import COMPARISON, STEP_LOG, TRAJECTORY
 from dmpc.records.run_folder import claim_folder, refuse_used, write_json
@@ -31,6 +51,8 @@ from dmpc.runtime.inprocess import record_run
 from dmpc.setup import prepare
 
 CONVERGED = 1e-3
+ALWAYS = "always"
+"""The trigger of every step solving: the reference of the event trigger."""
 
 
 def steps_to(x: np.ndarray, tol: float = CONVERGED, target: np.ndarray | None = None) -> int | None:
@@ -55,6 +77,100 @@ def check_methods(methods: list[str] | None, setpoints: bool = False) -> list[st
     return list(methods)
 
 
+# ----------------------------------------------------------------------------- triggers
+def run_label(method: str, trigger: str) -> str:
+    """The name of a run in ``comparison.json`` and of its folder: the method, with ``+<trigger>``
+    unless the trigger is ``always``."""
+    return method if trigger == ALWAYS else f"{method}+{trigger}"
+
+
+def check_triggers(triggers: list[str] | None, scenario) -> list[str]:
+    """The triggers to run, checked: by default the scenario's own.
+
+    Raises
+    ------
+    ValueError
+        An unknown trigger, one listed twice, or ``event`` with more than one Jacobi round per step.
+    """
+    chosen = list(triggers) if triggers else [scenario.options.trigger]
+    for name in chosen:
+        if name not in TRIGGERS:
+            raise ValueError(f"unknown trigger '{name}' (known: {', '.join(TRIGGERS)})")
+    if len(set(chosen)) != len(chosen):
+        raise ValueError(f"a trigger is listed twice: {', '.join(chosen)}")
+    if "event" in chosen and scenario.options.iterations != 1:
+        raise ValueError(f"'event' needs one Jacobi round per step (options.iterations is {scenario.options.iterations})")
+    return chosen
+
+
+def plan_runs(methods: list[str], triggers: list[str]) -> tuple[list[tuple[str, str]], dict[str, str]]:
+    """Each method with each trigger: the (method, trigger) pairs to run, in that order, and the
+    names of the pairs left out with the reason (the event trigger works with some methods only)."""
+    runs, skipped = [], {}
+    for method in methods:
+        for trigger in triggers:
+            if trigger == ALWAYS or method in TRIGGER_METHODS:
+                runs.append((method, trigger))
+            else:
+                skipped[run_label(method, trigger)] = (f"the {trigger} trigger works with "
+                                                       f"{' and '.join(TRIGGER_METHODS)} only")
+    return runs, skipped
+
+
+def runnable(methods: list[str], triggers: list[str]) -> tuple[list[tuple[str, str]], dict[str, str]]:
+    """:func:`plan_runs`; ValueError when it leaves nothing to run."""
+    runs, skipped = plan_runs(methods, triggers)
+    if not runs:
+        raise ValueError(f"none of the methods {', '.join(methods)} works with the trigger "
+                         f"{' or '.join(triggers)} ({'; '.join(sorted(set(skipped.values())))})")
+    return runs, skipped
+
+
+# ----------------------------------------------------------------------------- one run
+class TimedRecorder(RunRecorder):
+    """A :class:`RunRecorder` that also notes when each step completed (wall clock, this process)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.completed: list[float] = []
+
+    def on_step(self, record) -> None:
+        super().on_step(record)
+        self.completed.append(time.perf_counter())
+
+    def step_times(self) -> np.ndarray:
+        """Seconds between consecutive steps' completion, shape (K-1,): steps 1 to K-1 (step 0
+        iterates Jacobi to convergence and has no step before it)."""
+        return np.diff(np.asarray(self.completed, float))
+
+
+@dataclass
+class TimedRun:
+    """A run recorded in this process: its summary, failure ("" if none) and step times (s)."""
+
+    summary: dict
+    failure: str
+    step_times: np.ndarray
+
+    @property
+    def step_time_median_s(self) -> float | None:
+        return float(np.median(self.step_times)) if self.step_times.size else None
+
+
+def timed_run(prepared, run_dir: Path, show_progress: bool = False) -> TimedRun:
+    """Run ``prepared`` in this process into the run folder ``run_dir``, timing its steps."""
+    recorder = TimedRecorder(run_dir, prepared, show_progress=show_progress)
+    with recorder:
+        summary, failure = record_run(prepared, recorder)
+    return TimedRun(summary, failure, recorder.step_times())
+
+
+def with_options(scenario, **options):
+    """``scenario`` with some of its ``options`` replaced (method, trigger, ...)."""
+    return scenario.model_copy(update={"options": scenario.options.model_copy(update=options)})
+
+
+# ----------------------------------------------------------------------------- entries
 def check_out(out: Path, methods: list[str]) -> None:
     """Create DIR; RunFolderError if it already holds a comparison or a run of one of the methods."""
     claim_folder(out, COMPARISON, "a comparison")
@@ -81,43 +197,69 @@ def method_entry(run_dir: Path, out: Path, summary: dict) -> dict:
     }
 
 
+def trigger_entry(summary: dict, method: str, trigger: str, trigger_cost, step_time_s: float | None) -> dict:
+    """What a comparison with triggers adds to an entry: what the agents solved, kept and sent
+    (``summary.json``), and the step time measured in this process."""
+    messages = summary.get("messages") or {}
+    sent = bool(messages)
+    return {
+        "method": method, "trigger": trigger, "trigger_cost": trigger_cost if trigger != ALWAYS else None,
+        "solves": summary.get("solves") if sent else None,
+        "keeps": int(summary.get("keeps") or 0) if sent else None,
+        "plan_messages": messages.get("plan_messages"), "kept_notices": messages.get("kept_notices"),
+        "bytes": messages.get("bytes"), "solve_reasons": dict(summary.get("solve_reasons") or {}),
+        "step_time_median_s": step_time_s,
+    }
+
+
 def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
-            on_method: Callable[[str, dict], None] | None = None) -> dict:
-    """Run each method in this process and write ``comparison.json``; returns its content.
+            on_method: Callable[[str, dict], None] | None = None, triggers: list[str] | None = None) -> dict:
+    """Run each method (with each trigger) in this process and write ``comparison.json``; returns its content.
 
     Parameters
     ----------
     scenario : Scenario
-        The validated scenario (overrides applied); its ``options.method`` is replaced by each method.
+        The validated scenario (overrides applied); its ``options.method`` (and ``options.trigger``)
+        is replaced by each method's (trigger's).
     out : Path
         The comparison folder (created).
     methods : list of str
         Checked with :func:`check_methods` (for a scenario with setpoints, those that track them).
     show_progress : bool
         A progress bar per run.
-    on_method : callable (method, entry), optional
-        Called after each method's run.
+    on_method : callable (name, entry), optional
+        Called after each run.
+    triggers : list of str, optional
+        Run each method with each of these triggers (:func:`check_triggers`); by default the
+        scenario's own. With triggers given, or the scenario's own ``event``, the entries carry
+        the trigger's figures (:func:`trigger_entry`).
     """
     check_methods(methods, setpoints=bool(scenario.setpoints))
-    check_out(out, methods)
+    chosen = check_triggers(triggers, scenario)
+    runs, skipped = runnable(methods, chosen)
+    with_triggers = triggers is not None or chosen != [ALWAYS]
+    check_out(out, [run_label(m, t) for m, t in runs])
     design_data = None
     entries: dict[str, dict] = {}
-    for method in methods:
-        scn = scenario.model_copy(update={"options": scenario.options.model_copy(update={"method": method})})
-        prepared = prepare(scn, design_data=design_data)
-        if design_data is None:
-            design_data = prepared.design_json()
-        run_dir = out / method
-        with RunRecorder(run_dir, prepared, show_progress=show_progress) as recorder:
-            summary, _failure = record_run(prepared, recorder)
-        entries[method] = method_entry(run_dir, out, summary)
+    for method, trigger in runs:
+        label = run_label(method, trigger)
+        prepared = prepare(with_options(scenario, method=method, trigger=trigger), design_data=design_data)
+        design_data = design_data or prepared.design_json()
+        run = timed_run(prepared, out / label, show_progress)
+        entries[label] = method_entry(out / label, out, run.summary)
+        if with_triggers:
+            entries[label].update(trigger_entry(run.summary, method, trigger, scenario.options.trigger_cost,
+                                                run.step_time_median_s))
         if on_method is not None:
-            on_method(method, entries[method])
-    data = {"scenario": scenario.name, "methods": entries}
+            on_method(label, entries[label])
+    data: dict = {"scenario": scenario.name, "methods": entries}
+    if with_triggers:
+        data.update(triggers=chosen, skipped=skipped)
     write_json(out / COMPARISON, data)
     return data
 
 
+# ----------------------------------------------------------------------------- the table
 def cost_ratios(data: dict, reference: str = "centralized") -> dict[str, float | None]:
     """closed-loop cost / the reference method's, per method (None without the reference)."""
     ref = data["methods"].get(reference)
@@ -126,9 +268,27 @@ def cost_ratios(data: dict, reference: str = "centralized") -> dict[str, float |
     return {m: e["closed_loop_cost"] / ref["closed_loop_cost"] for m, e in data["methods"].items()}
 
 
+def always_ratios(data: dict) -> dict[str, float | None]:
+    """closed-loop cost / the same method's with the trigger ``always``, per entry (None for the
+    ``always`` entries themselves and where that run is missing)."""
+    methods = data["methods"]
+    ratios: dict[str, float | None] = {}
+    for name, e in methods.items():
+        ref = methods.get(e.get("method", name)) if e.get("trigger", ALWAYS) != ALWAYS else None
+        ratios[name] = e["closed_loop_cost"] / ref["closed_loop_cost"] if ref and ref["closed_loop_cost"] else None
+    return ratios
+
+
+def has_triggers(data: dict) -> bool:
+    """Whether the comparison ran with triggers (its entries carry the trigger's figures)."""
+    return "triggers" in data
+
+
 def comparison_rows(data: dict) -> list[list[str]]:
-    """The comparison as table rows (strings), one per method, in the order run."""
+    """The comparison as table rows (strings), one per method, in the order run; with triggers,
+    also the columns of :data:`TRIGGER_HEADER`."""
     ratios = cost_ratios(data)
+    more = trigger_cells(data) if has_triggers(data) else {}
     rows = []
     for method, e in data["methods"].items():
         ratio = ratios[method]
@@ -139,8 +299,35 @@ def comparison_rows(data: dict) -> list[list[str]]:
         rows.append([method, verdict, "yes" if e["feasible"] else "no", str(e["fallbacks"]), number_text(e["closed_loop_cost"]),
                      "-" if ratio is None else number_text(ratio),
                      "never" if e["steps_to_1e-3"] is None else str(e["steps_to_1e-3"]),
-                     "-" if solve is None else f"{solve * 1e6:.0f}"])
+                     "-" if solve is None else f"{solve * 1e6:.0f}", *more.get(method, [])])
     return rows
+
+
+def _count(value) -> str:
+    return "-" if value is None else str(value)
+
+
+def trigger_cells(data: dict) -> dict[str, list[str]]:
+    """Per entry, the cells of :data:`TRIGGER_HEADER`."""
+    ratios = always_ratios(data)
+    cells = {}
+    for name, e in data["methods"].items():
+        step = e.get("step_time_median_s")
+        size = e.get("bytes")
+        cells[name] = ["-" if ratios[name] is None else f"{ratios[name]:.6f}", _count(e.get("solves")),
+                       _count(e.get("keeps")), _count(e.get("plan_messages")),
+                       "-" if size is None else f"{size / 1e3:.1f}", "-" if step is None else f"{step * 1e3:.2f}"]
+    return cells
+
+
+def comparison_header(data: dict) -> list[str]:
+    """The table's columns: :data:`COMPARISON_HEADER`, and with triggers :data:`TRIGGER_HEADER` too."""
+    return COMPARISON_HEADER + (TRIGGER_HEADER if has_triggers(data) else [])
+
+
+def comparison_legend(data: dict) -> str:
+    """What the columns mean (:data:`COMPARISON_LEGEND`, and with triggers :data:`TRIGGER_LEGEND`)."""
+    return COMPARISON_LEGEND + (f"; {TRIGGER_LEGEND}" if has_triggers(data) else "")
 
 
 COMPARISON_HEADER = ["method", "verdict", "feasible", "fallbacks", "cost", "/ central", "k to 1e-3", "QP us"]
@@ -148,5 +335,7 @@ COMPARISON_LEGEND = ("verdict: ok, or the failures found (see each run's summary
                      "cost: closed-loop sum of x'Qx + u'Ru (around the targets applied, with setpoints); / central: "
                      "that cost over the centralised one; k to 1e-3: first k with ||x(k) - x_s||_inf < 1e-3 (x_s the "
                      "last target, the origin without setpoints); QP us: median solve time")
-
-
+TRIGGER_HEADER = ["/ always", "solves", "kept", "plans", "kB", "step ms"]
+TRIGGER_LEGEND = ("/ always: the cost over the same method's with the trigger always; solves: QP solves whose plans "
+                  "reached the coordinator; kept: plans kept instead; plans: plan messages; kB: bytes of the agents' "
+                  "answers; step ms: median wall time of a step in this process, k >= 1")

@@ -17,6 +17,10 @@ from dmpc.core.system import CoupledSystem, LinearSet, stack_sets
 
 HORIZON_CAP = 200
 """The largest horizon the search for a feasible horizon tries."""
+LP_SECONDS_PER_NONZERO = 2e-4
+"""HiGHS may spend max(2 s, this times the LP's nonzeros) on one LP before the next method is tried
+(its dual simplex can stall on badly scaled data, such as entries of 1e-300 beside entries of 1,
+where its interior point method decides in milliseconds); after every method, undecided."""
 _FEASIBLE, _INFEASIBLE = 0, 2  # scipy.optimize.linprog statuses
 
 
@@ -54,9 +58,10 @@ def start_feasible(system: CoupledSystem, x0: np.ndarray, horizon: int, terminal
     rhs.append(g)
     A_ub = sp.vstack(rows, format="csr")
     b_ub = np.concatenate(rhs)
+    limit = max(2.0, LP_SECONDS_PER_NONZERO * (A_ub.nnz + A_eq.nnz))
     for method in ("highs", "highs-ipm", "highs-ds"):
         res = linprog(np.zeros(nz + nv), A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=(None, None),
-                      method=method)
+                      method=method, options={"time_limit": limit})
         if res.status == _FEASIBLE:
             return True
         if res.status == _INFEASIBLE:

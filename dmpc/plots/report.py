@@ -1,4 +1,5 @@
-"""Figures of a run folder, or of a comparison folder: the paper's figures 1 to 5.
+"""Figures of a run folder, or of a comparison folder: the paper's figures 1 to 5, and for a run
+folder the agents' solves per step.
 
 Reads the records only (``scenario.yaml``, ``design.json``, ``trajectory.npz``,
 ``summary.json`` and, for a comparison, ``comparison.json``); it never runs anything.
@@ -19,6 +20,8 @@ A run that tracked setpoints also shows, in figures 2 and 3, the target applied 
 request changed (faint vertical lines); its terminal boxes in figure 1 lie around the targets
 (:mod:`dmpc.plots.targets`).
 - ``fig5_S.png``: S(x(k)) = sum_i ||x_i(k)||^2 / |N_i|.
+- ``fig6_solves.png`` (a run folder only): per step, the agents that solved their QP, kept their
+  plan (an event trigger) or fell back (:mod:`dmpc.plots.solves`).
 
 On a comparison folder (``comparison.json`` from ``dmpc compare``), :func:`draw_comparison`
 draws the same five figures across the methods: figure 1 sets the tv-box boxes against the
@@ -46,12 +49,17 @@ from dmpc.core.errors import InputError
 from dmpc.core.quantities import Quantity, time_axis, time_label
 from dmpc.core.system import box_hull
 from dmpc.methods import DEFAULT_METHOD, METHOD_NAMES
+from dmpc.plots.solves import Solves, solves_figure
 from dmpc.plots.style import bound_lines, panel_grid, positive, use_log
 from dmpc.plots.targets import Tracked, draw_targets, mark_changes, unique_legend
 from dmpc.records.files import COMPARISON
 from dmpc.records.reader import RunFolderNotReadable, read_run, tracking_arrays
 
 FIGURES = ("fig1_terminal_sets", "fig2_states", "fig3_inputs", "fig4_cost", "fig5_S")
+"""The paper's figures: those of a comparison folder."""
+SOLVES_FIGURE = "fig6_solves"
+RUN_FIGURES = FIGURES + (SOLVES_FIGURE,)
+"""The figures of a run folder."""
 MAX_PANELS = 8
 DPI = 120
 
@@ -104,6 +112,8 @@ class RunData:
         The scenario's sampling period in seconds (None: the axes count steps).
     tracked : Tracked or None
         The setpoints requested and the targets applied; None when the run requested nothing.
+    solves : Solves or None
+        What each agent did at each step: solved, kept its plan or fell back.
     """
 
     path: Path
@@ -126,6 +136,7 @@ class RunData:
     inputs: list[tuple[Quantity, ...]]
     dt: float | None = None
     tracked: Tracked | None = None
+    solves: Solves | None = None
 
     @property
     def time_label(self) -> str:
@@ -247,7 +258,9 @@ def load_run(path, notes: list[str] | None = None) -> RunData:
     steps = u.shape[0]
     states, inputs = records.quantities()
     tracked = Tracked.of(tracking_arrays(arrays, steps, x.shape[1], u.shape[1]))
-    return RunData(path=records.path, method=str(summary.get("method") or "run"),
+    method = str(summary.get("method") or "run")
+    solves = Solves.of(arrays, summary, _trigger(scenario, arrays), method, steps, len(names))
+    return RunData(path=records.path, method=method,
                    scenario=str(summary.get("scenario") or (scenario.name if scenario is not None else records.path.name)),
                    names=names, n=records.n, m=records.m, lower=lower, upper=upper, P=P, x=x, u=u,
                    alpha=_optional(arrays, "alpha", x.shape[0]), beta=_optional(arrays, "beta", x.shape[0]),
@@ -255,7 +268,14 @@ def load_run(path, notes: list[str] | None = None) -> RunData:
                    J=_series(arrays, "J", steps, summary.get("J")),
                    S=_series(arrays, "S", x.shape[0], summary.get("S")),
                    states=[states[name] for name in names], inputs=[inputs[name] for name in names],
-                   dt=records.dt, tracked=tracked)
+                   dt=records.dt, tracked=tracked, solves=solves)
+
+
+def _trigger(scenario, arrays: dict) -> str:
+    """The run's ``options.trigger``; without its scenario, ``event`` where plans were kept."""
+    if scenario is not None:
+        return str(scenario.options.trigger)
+    return "event" if "kept" in arrays else "always"
 
 
 @dataclass
@@ -285,8 +305,16 @@ class Comparison:
 
 
 def _method_order(methods) -> list[str]:
-    known = [m for m in METHOD_ORDER if m in methods]
-    return known + sorted(m for m in methods if m not in METHOD_ORDER)
+    """The known methods in :data:`METHOD_ORDER`, each followed by its runs with another trigger
+    (``tv-box+event``, from ``dmpc compare --triggers``), then the others by name."""
+    known = [m for base in METHOD_ORDER for m in [base, *sorted(m for m in methods if _base_method(m) == base
+                                                                and m != base)] if m in methods]
+    return known + sorted(m for m in methods if m not in known)
+
+
+def _base_method(name: str) -> str:
+    """The method of a comparison entry's name: ``tv-box`` for ``tv-box+event``."""
+    return name.split("+", 1)[0]
 
 
 def load_comparison(path) -> Comparison:
@@ -344,6 +372,8 @@ def _style(method: str) -> dict:
     """The line style of a method: fixed for the known ones, chosen by name for others."""
     if method in METHOD_STYLE:
         return dict(METHOD_STYLE[method])
+    if _base_method(method) in METHOD_STYLE:  # another trigger: the method's colour, dotted, open markers
+        return dict(METHOD_STYLE[_base_method(method)], linestyle=":", markerfacecolor="none")
     return dict(EXTRA_STYLES[sum(map(ord, method)) % len(EXTRA_STYLES)])
 
 
@@ -684,7 +714,7 @@ def _cost_label(method: str, entry: dict) -> str:
 
 # ----------------------------------------------------------------------------- entry points
 def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path]:
-    """Draw the five figures of one run folder.
+    """Draw the six figures of one run folder (:data:`RUN_FIGURES`).
 
     Parameters
     ----------
@@ -696,7 +726,7 @@ def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path
     Returns
     -------
     list of Path
-        The five files, in figure order.
+        The six files, in figure order.
     """
     run = load_run(run_dir, notes)
     folder = Path(fig_dir) if fig_dir is not None else run.path / "figures"
@@ -715,14 +745,22 @@ def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path
         paths.append(_save(_series_figure(plt, [("", run.S, style, run.method)],
                                           "$S(x(k)) = \\sum_i \\|x_i(k)\\|^2 / |N_i|$", f"{head}: S(x(k))", run),
                            folder, FIGURES[4]))
+        paths.append(_save(_solves(plt, run, f"{head}: agents solving per step"), folder, SOLVES_FIGURE))
     return paths
+
+
+def _solves(plt, run: RunData, title: str):
+    """Figure 6 of a run (:mod:`dmpc.plots.solves`)."""
+    assert run.solves is not None
+    return solves_figure(plt, run.solves, run.times(run.u.shape[0] + 1), run.names, run.time_label, title)
 
 
 def _fig1_sets(cmp: Comparison) -> tuple[list[PlaneSet], list[str]]:
     """tv-box's boxes (else tv-box-opt's, else fixed-box's) against the ellipsoid method's ellipses
     (the adaptive one's if it is alone)."""
     specs, notes = [], []
-    box = next((m for m in ("tv-box", "tv-box-opt", "fixed-box") if m in cmp.runs), None)
+    box = next((m for base in ("tv-box", "tv-box-opt", "fixed-box") for m in cmp.runs if _base_method(m) == base),
+               None)
     if box is not None:
         specs.append(PlaneSet(cmp.runs[box], box, boxes=True, ellipses=False))
     ell = next((m for m in ("ellipsoid", "ellipsoid-adaptive") if m in cmp.runs), None)
@@ -810,7 +848,7 @@ def draw(path, fig_dir=None, notes: list[str] | None = None) -> list[Path]:
     Returns
     -------
     list of Path
-        The five files, in figure order.
+        The files, in figure order: six for a run folder, five for a comparison folder.
     """
     path = Path(path)
     if not path.exists():

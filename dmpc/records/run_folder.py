@@ -307,7 +307,9 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
         l_k = stage_cost(system, dx[k], du[k])
         decrease.append(None if changed[k] else float(J[k] - l_k - J[k + 1]))
     fallbacks_per_agent = arrays["fallback"].sum(axis=0).tolist() if K else [0] * system.M
-    solve = arrays["solve_time"]
+    solve = np.asarray(arrays["solve_time"], float)
+    if "kept" in arrays:
+        solve = solve[~np.asarray(arrays["kept"], bool)]  # a kept plan was not solved
     finite_solve = solve[np.isfinite(solve)]
     step_time = arrays["step_time"][np.isfinite(arrays["step_time"])]
     notes = steps.notes

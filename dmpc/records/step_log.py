@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dmpc.core.qp_status import KEPT
+
 
 @dataclass(frozen=True)
 class StepLog:
@@ -62,7 +64,8 @@ def _floats(value) -> np.ndarray:
 
 def arrays_from_log(log: StepLog) -> dict[str, np.ndarray]:
     """The main arrays of ``trajectory.npz`` rebuilt from the log: x, alpha (K+1, n), u (K, m),
-    beta, S (K+1,), J (K,), J_agents, fallback (K, M). K = 0 gives empty arrays."""
+    beta, S (K+1,), J (K,), J_agents, fallback (K, M), rounds (K,), and with an event trigger kept
+    (K, M). K = 0 gives empty arrays."""
     steps = log.steps
     if not steps:
         return {}
@@ -78,4 +81,7 @@ def arrays_from_log(log: StepLog) -> dict[str, np.ndarray]:
         "S": np.array([s["S"] for s in steps] + [np.nan], dtype=float),
         "J_agents": np.array([[v if v is not None else np.nan for v in s["J_agents"]] for s in steps], dtype=float),
         "fallback": np.array([s["fallback"] for s in steps], dtype=bool),
+        "rounds": np.array([s["rounds"] for s in steps], dtype=int),
+        **({"kept": np.array([[status == KEPT for status in s["status"]] for s in steps], dtype=bool)}
+           if "solve_reason" in last else {}),
     }

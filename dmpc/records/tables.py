@@ -152,6 +152,15 @@ def feasibility_text(summary: dict) -> str:
     return "no: " + "; ".join(parts)
 
 
+def trigger_text(summary: dict) -> str:
+    """With an event trigger: the QP solves and the plans kept, why agents solved, and the bytes
+    of the agents' answers."""
+    reasons = ", ".join(f"{reason} {count}" for reason, count in summary.get("solve_reasons", {}).items())
+    messages = summary.get("messages") or {}
+    sent = f"; {messages['bytes']:,} bytes sent" if "bytes" in messages else ""
+    return f"{summary.get('solves', '-')} / {summary['keeps']}" + (f" (solved for: {reasons})" if reasons else "") + sent
+
+
 MAX_TRACKED_ROWS = 8
 """Requested components listed in the summary table (the rest are in summary.json)."""
 
@@ -192,6 +201,8 @@ def print_summary(summary: dict, out) -> None:
         table.add_row("horizon N", f"{summary['horizon']}" + (" (auto)" if summary.get("horizon_auto") else ""))
     table.add_row("every QP feasible", feasibility_text(summary))
     table.add_row("fallbacks", str(summary["fallbacks"]))
+    if summary.get("keeps") is not None:
+        table.add_row("solves / plans kept", trigger_text(summary))
     table.add_row("max |u|", f"{summary['max_abs_u']:.4g}")
     table.add_row(*first_costs(J))
     table.add_row("closed-loop cost", number_text(summary["closed_loop_cost"]))

@@ -53,7 +53,8 @@ def meta_json(prepared, run_id: str) -> dict:
         ``run_id``, ``scenario``, ``method``, ``mode``, ``dt``, ``deadline``, ``steps``,
         ``horizon``, ``digest``, ``subsystems`` (name, n, m, raw input and state sets, and the
         ``[name, unit]`` of each state and input where the scenario names them),
-        ``edges`` (undirected pairs of names) and ``faults`` (default and per directed link).
+        ``edges`` (undirected pairs of names), ``faults`` (default and per directed link) and
+        ``trigger`` (``options.trigger``: ``always`` or ``event``).
     """
     system = prepared.system
     names = [s.name for s in system.subsystems]
@@ -76,6 +77,7 @@ def meta_json(prepared, run_id: str) -> dict:
         "edges": [[names[i], names[j]] for i, j in system.edges],
         "faults": {"default": vars(faults.default),
                    "links": [{"source": s, "target": r, **vars(f)} for s, r, f in faults.links]},
+        "trigger": prepared.trigger.mode,
     }
 
 
@@ -144,6 +146,7 @@ class RunMeta:
     subsystems: tuple[SubsystemMeta, ...]
     edges: tuple[tuple[str, str], ...]
     faults: dict
+    trigger: str = "always"
 
     @property
     def names(self) -> list[str]:
@@ -186,7 +189,7 @@ class RunMeta:
                        deadline=None if data["deadline"] is None else float(data["deadline"]),
                        steps=int(data["steps"]), horizon=int(data["horizon"]), digest=str(data["digest"]),
                        subsystems=subsystems, edges=tuple((str(a), str(b)) for a, b in data["edges"]),
-                       faults=dict(data.get("faults") or {}))
+                       faults=dict(data.get("faults") or {}), trigger=str(data.get("trigger") or "always"))
         except (KeyError, TypeError, IndexError) as exc:
             raise ValueError(f"not a run description ({type(exc).__name__}: {exc})") from None
 

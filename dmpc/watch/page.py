@@ -164,7 +164,7 @@ class WatchPage:
         hover.renderers = [nodes, edges]
         hover.tooltips = [("", "@name @link"), ("state", "@state"), ("faults", "@faults")]
 
-        self.agents = Div(name="agents", width=1100, height=min(70 + 27 * meta.M, 600), stylesheets=[tables],
+        self.agents = Div(name="agents", width=1300, height=min(70 + 27 * meta.M, 600), stylesheets=[tables],
                           styles=scroll)
         self._update_agents()
 
@@ -405,6 +405,10 @@ class WatchPage:
         reasons = ((snap.summary if snap else None) or {}).get("rejected_reasons") or (
             snap.plant.get("rejected_reasons") if snap else None) or {}
         notes = []
+        why = self.history.solve_reasons(n)
+        if why:
+            notes.append("why agents solved up to this step: " + ", ".join(f"{r}: {c}" for r, c in why.items())
+                         + " (hover over a plan for what its reason means)")
         if reasons:
             notes.append("dropped by the coordinator, by reason: " + ", ".join(f"{r}: {c}" for r, c in reasons.items()))
         if self.meta.M > SHOWN:
@@ -434,7 +438,8 @@ class WatchPage:
             mode = meta.mode + (f", dt {meta.dt:g} s" if meta.mode == "realtime" else "")
             self.header.text = (f"<h2>dmpc watch: {html.escape(meta.scenario)}</h2>run "
                                 f"<b>{html.escape(snap.run_id or meta.run_id)}</b> · method {html.escape(meta.method)}"
-                                f" · {html.escape(mode)} · {meta.M} agents, horizon {meta.horizon} · "
+                                f" · {html.escape(mode)}{' · event trigger' if meta.trigger == 'event' else ''}"
+                                f" · {meta.M} agents, horizon {meta.horizon} · "
                                 f"{html.escape(snap.source)}")
             done = len(self.step_rows)
             missing = (self.step_ks[-1] + 1 - done) if self.step_ks else 0

@@ -51,7 +51,9 @@ class StepRow:
     """What happened in step k (the fields of a ``steps.jsonl`` line that the page shows).
 
     ``targets`` is None in a step before anything was requested (and in every step of a run
-    without setpoints), whose line has no targets.
+    without setpoints), whose line has no targets. ``solve_reason`` (M,) says, with an event
+    trigger, why each agent solved ("" where it kept its plan or solved in a step of several
+    rounds); None without a trigger. ``rounds`` counts the step's Jacobi rounds.
     """
 
     k: int
@@ -65,6 +67,8 @@ class StepRow:
     step_time: float
     note: str
     targets: Targets | None = None
+    rounds: int = 1
+    solve_reason: list[str] | None = None
 
 
 class BadStep(DmpcError, ValueError):
@@ -77,6 +81,12 @@ def parse_targets(line: dict) -> Targets | None:
         return None
     return Targets(x=floats(line["target"]), u=floats(line["target_u"]), setpoint=floats(line["setpoint"]),
                    setpoint_u=floats(line["setpoint_u"]))
+
+
+def _reasons(line: dict) -> list[str] | None:
+    """Why each agent solved (an event trigger's ``solve_reason``), None when the line has none."""
+    reasons = line.get("solve_reason")
+    return None if reasons is None else [str(r) for r in reasons]
 
 
 def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, StateRow]:
@@ -96,7 +106,8 @@ def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, Sta
                        fallback_reason=[str(r) for r in line["fallback_reason"]],
                        solve_time=floats(line["solve_time"]), latency=floats(line.get("latency") or []),
                        step_time=number(line.get("step_time")), note=str(line.get("note") or ""),
-                       targets=parse_targets(line))
+                       targets=parse_targets(line), rounds=int(line.get("rounds") or 1),
+                       solve_reason=_reasons(line))
         now = StateRow(k, floats(line["x"]), floats(line["alpha"]), number(line["beta"]))
         nxt = StateRow(k + 1, floats(line["x_next"]), floats(line["alpha_next"]), number(line["beta_next"]))
     except (KeyError, TypeError, ValueError) as exc:
@@ -108,6 +119,8 @@ def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, Sta
         sizes = {"x": len(now.x), "x_next": len(nxt.x), "u": len(step.u), "status": len(step.status),
                  "fallback": len(step.fallback), "solve_time": len(step.solve_time)}
         want = {"x": n, "x_next": n, "u": m, "status": M, "fallback": M, "solve_time": M}
+        if step.solve_reason is not None:
+            sizes["solve_reason"], want["solve_reason"] = len(step.solve_reason), M
         if step.targets is not None:
             t = step.targets
             sizes.update({"target": len(t.x), "setpoint": len(t.setpoint), "target_u": len(t.u),

@@ -1,7 +1,9 @@
 """What the page shows, computed from the rows of a run (no Bokeh here).
 
 Per agent at step k: alive, its state (``ok``, ``late``, ``fallback``, ``lost``, ``waiting``),
-the last solve time and latency, fallbacks and rejoins up to k, and dropped messages. Per link
+the last solve time and latency, fallbacks and rejoins up to k, and dropped messages; with an
+event trigger also whether it solved or kept its plan at k, why it solved, and its QP solves and
+plans kept up to k. Per link
 of the communication graph: ``up``, ``late``, ``down`` or ``idle``. The readout of the values at
 step k and the summary at the end, as HTML.
 """
@@ -21,6 +23,20 @@ COLORS = {"ok": "#2ca02c", "up": "#2ca02c", "late": "#ff7f0e", "fallback": "#e6b
           "down": "#d62728", "waiting": "#999999", "idle": "#999999", "coordinator": "#1f77b4"}
 CELL_COLORS = {"ok": "#dff0d8", "late": "#fde3c8", "fallback": "#fcf3c4", "lost": "#f6d0d0", "waiting": "#eeeeee"}
 _EVENT = re.compile(r"agent (\S+) (lost|back)")
+KEPT = "kept"
+"""The status of an agent that kept its plan (an event trigger)."""
+NO_ANSWER = frozenset({KEPT, "missed"})
+"""Statuses of an agent that ran no QP at a step (or whose plan never came)."""
+REASONS = {
+    "no plan": "no plan of the step before to keep (after a fallback, a refused or a missed plan)",
+    "limit": "it had kept its plan trigger_max_keep steps in a row",
+    "prediction": "its state left the prediction by more than trigger_threshold",
+    "changed": "a neighbour's plan changed its feed-forward: the kept plan no longer meets the QP's dynamics",
+    "constraints": "the kept plan breaks an input, state or terminal-box row of the QP",
+    "cost": "keeping its plan would give up more than trigger_cost",
+    "target": "the setpoint target moved",
+}
+"""Why an agent solved, as the event trigger says it (docs/algorithm.md, "Event-triggered DMPC")."""
 
 
 def fmt(value: float, digits: int = 6) -> str:
@@ -45,6 +61,9 @@ class AgentHistory:
     def __init__(self, meta: RunMeta) -> None:
         self.names = meta.names
         self._fallback = np.zeros((64, meta.M), dtype=bool)
+        self._solves = np.zeros((64, meta.M), dtype=int)  # QP solves: the step's rounds, where it solved
+        self._kept = np.zeros((64, meta.M), dtype=bool)
+        self._reasons: list[list[str] | None] = []
         self.n = 0
         self._events: list[tuple[int, str, str]] = []  # (step index, agent, "lost" | "back")
 
@@ -52,8 +71,12 @@ class AgentHistory:
         """Append steps (in step order)."""
         for step in steps:
             if self.n == len(self._fallback):
-                self._fallback = np.vstack([self._fallback, np.zeros_like(self._fallback)])
+                self._fallback, self._solves, self._kept = (np.vstack([a, np.zeros_like(a)]) for a in
+                                                            (self._fallback, self._solves, self._kept))
             self._fallback[self.n] = step.fallback
+            self._solves[self.n] = [0 if s in NO_ANSWER else step.rounds for s in step.status]
+            self._kept[self.n] = [s == KEPT for s in step.status]
+            self._reasons.append(step.solve_reason)
             self._events.extend((self.n, name, event) for name, event in _EVENT.findall(step.note)
                                 if name in self.names)
             self.n += 1
@@ -61,6 +84,24 @@ class AgentHistory:
     def fallbacks(self, n: int) -> list[int]:
         """Fallbacks per agent in the first ``n`` steps."""
         return self._fallback[:n].sum(axis=0).astype(int).tolist()
+
+    def solves(self, n: int) -> list[int]:
+        """QP solves per agent in the first ``n`` steps (every Jacobi round's)."""
+        return self._solves[:n].sum(axis=0).astype(int).tolist()
+
+    def keeps(self, n: int) -> list[int]:
+        """Plans kept per agent in the first ``n`` steps."""
+        return self._kept[:n].sum(axis=0).astype(int).tolist()
+
+    def solve_reasons(self, n: int) -> dict[str, int]:
+        """Why agents solved in the first ``n`` steps: reason -> agent-steps, by reason (as
+        ``summary.json``'s ``solve_reasons``)."""
+        counts: dict[str, int] = {}
+        for reasons in self._reasons[:n]:
+            for reason in reasons or ():
+                if reason:
+                    counts[reason] = counts.get(reason, 0) + 1
+        return dict(sorted(counts.items()))
 
     def alive(self, n: int) -> dict[str, bool]:
         """Liveliness after the first ``n`` steps, as their notes tell it (``agent 2 lost`` ...)."""
@@ -124,30 +165,56 @@ def agent_table(meta: RunMeta, history: AgentHistory, n: int, last: StepRow | No
         columns["state"].append(states[i])
         columns["color"].append(CELL_COLORS[states[i]])
         columns["status"].append(last.status[i] if last else "-")
-        columns["solve_ms"].append(ms(last.solve_time[i]) if last else "-")
+        columns["solve_ms"].append(ms(last.solve_time[i]) if last and last.status[i] != KEPT else "-")
         columns["latency_ms"].append(ms(last.latency[i]) if last and i < len(last.latency) else "-")
         columns["fallbacks"].append(fallbacks[i])
         columns["dropped_coordinator"].append(int(rejected.get(name, 0)))
         columns["dropped_agent"].append("-" if dropped is None else f"{dropped}" + (
             " (" + ", ".join(f"{r}: {c}" for r, c in reasons.items()) + ")" if reasons else ""))
         columns["rejoins"].append(back[name])
+    if meta.trigger == "event" or (last is not None and last.solve_reason is not None):
+        columns.update(trigger_columns(history, n, last))
     return columns
 
 
+def plan_text(status: str, reason: str) -> str:
+    """What an agent did with its plan at a step: ``kept``, ``solved: <why>``, ``solved`` (k = 0,
+    or a step of several rounds, where no reason is given), or ``-`` (no answer)."""
+    if status == KEPT:
+        return "kept"
+    if status in NO_ANSWER:
+        return "-"
+    return f"solved: {reason}" if reason else "solved"
+
+
+def trigger_columns(history: AgentHistory, n: int, last: StepRow | None) -> dict[str, list]:
+    """The event trigger's columns of the agent table after the first ``n`` steps: the plan at
+    the n-th (``plan``, and ``plan_title``, what its reason means), QP solves and plans kept."""
+    names = history.names
+    reasons = (last.solve_reason if last is not None else None) or [""] * len(names)
+    plans = [plan_text(last.status[i], reasons[i]) if last else "-" for i in range(len(names))]
+    return {"plan": plans, "plan_title": [REASONS.get(reason, "") for reason in reasons],
+            "solves": history.solves(n), "keeps": history.keeps(n)}
+
+
 TABLE_COLUMNS = [("agent", "agent"), ("alive", "alive"), ("state", "state"), ("status", "QP status"),
-                 ("solve_ms", "solve (ms)"), ("latency_ms", "latency (ms)"), ("fallbacks", "fallbacks"),
+                 ("plan", "plan at k"), ("solves", "QP solves"), ("keeps", "plans kept"), ("solve_ms", "solve (ms)"), ("latency_ms", "latency (ms)"), ("fallbacks", "fallbacks"),
                  ("dropped_coordinator", "dropped by coordinator"), ("dropped_agent", "dropped by agent"), ("rejoins", "rejoins")]
 
 
 def table_html(columns: dict[str, list]) -> str:
     """The per-agent table as HTML; each cell has the class ``dmpc-<column>``, the state cell
-    the colour of the state."""
-    head = "".join(f"<th>{html.escape(title)}</th>" for _, title in TABLE_COLUMNS)
+    the colour of the state, a plan cell what its reason means as its tooltip. The event
+    trigger's columns are there only when ``columns`` has them."""
+    shown = [(key, title) for key, title in TABLE_COLUMNS if key in columns]
+    head = "".join(f"<th>{html.escape(title)}</th>" for _, title in shown)
     rows = []
     for r in range(len(columns["agent"])):
         cells = []
-        for key, _ in TABLE_COLUMNS:
+        for key, _ in shown:
             style = f" style='background:{columns['color'][r]}'" if key == "state" else ""
+            if key == "plan" and columns["plan_title"][r]:
+                style = f" title='{html.escape(columns['plan_title'][r])}'"
             cells.append(f"<td class='dmpc-{key}'{style}>{html.escape(str(columns[key][r]))}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table class='dmpc-agents'><tr>{head}</tr>{''.join(rows)}</table>"
@@ -273,10 +340,14 @@ def summary_html(summary: dict | None, source: str = "") -> str:
     for key in ("aborted", "failure"):
         if summary.get(key):
             rows.append((key, summary[key]))
+    if summary.get("keeps") is not None:
+        rows.append(("QP solves / plans kept", f"{summary.get('solves', '-')} / {summary['keeps']}"))
+        rows.append(("agents solved for", ", ".join(f"{r}: {c}" for r, c in (summary.get("solve_reasons") or {}).items())
+                     or "-"))
     if summary.get("rejected"):
         rows.append(("dropped by the coordinator", ", ".join(f"{s}: {n}" for s, n in summary["rejected"].items())))
     names = {"final J": "dmpc-final-J", "closed-loop cost": "dmpc-cost", "fallbacks": "dmpc-fallbacks-total",
-             "fallbacks per agent": "dmpc-fallbacks-per-agent"}
+             "fallbacks per agent": "dmpc-fallbacks-per-agent", "QP solves / plans kept": "dmpc-solves-keeps"}
     body = "".join(f"<tr><td>{html.escape(str(k))}</td><td class='{names.get(k, '')}'>{html.escape(str(v))}</td></tr>"
                    for k, v in rows)
     findings = ""
