@@ -241,9 +241,9 @@ class AgentNode:
         previous, k = self._previous, release.k - 1
         if previous is None or previous.k != k:
             return
-        for name in release.kept:
-            j = self.neighbour_names.get(name)
-            if j is None:
+        kept = release.kept_set
+        for name, j in self.neighbour_names.items():
+            if name not in kept:
                 continue
             ref = previous.reference(j)
             plan = None if ref is None else self.plans[name].get(ref)

@@ -21,6 +21,7 @@ Every message carries ``PROTOCOL_VERSION`` (docs/protocol.md).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -81,6 +82,12 @@ class Release:
     provided: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     target: tuple[np.ndarray, np.ndarray] | None = None
     kept: tuple[str, ...] = ()
+
+    @cached_property
+    def kept_set(self) -> frozenset[str]:
+        """``kept`` as a set, made once per message: the agents of a process share one decoded
+        release, and each looks up its few neighbours in it."""
+        return frozenset(self.kept)
 
     def reference(self, j: int) -> tuple[int, int] | None:
         """The plan (k', round') agent j's assumed trajectory is built from, or None (K-rollout)."""
