@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
 
 from dmpc.core.errors import DmpcError
 from dmpc.core.system import CoupledSystem, Coupling, Subsystem
@@ -52,6 +51,8 @@ def zoh(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray
     block = np.zeros((n + q, n + q))
     block[:n, :n] = A
     block[:n, n:] = B
+    from scipy.linalg import expm  # here: only continuous-time models need it, and scipy.linalg costs memory
+
     E = expm(block * dt)
     return E[:n, :n], E[:n, n:]
 

@@ -13,7 +13,6 @@ what keeping may cost at most. The optimum is a quadratic form in x and c, forme
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 
 
 class UnconstrainedBound:
@@ -43,12 +42,14 @@ class UnconstrainedBound:
             for s in range(t):
                 gamma[t * n:(t + 1) * n, s * m:(s + 1) * m] = powers[t - 1 - s] @ B
                 psi[t * n:(t + 1) * n, s * n:(s + 1) * n] = powers[t - 1 - s]
-        weights = sla.block_diag(*([Q] * N + [P]))
+        weights = np.zeros(((N + 1) * n, (N + 1) * n))  # blockdiag(Q, ..., Q, P)
+        weights[:N * n, :N * n] = np.kron(np.eye(N), Q)
+        weights[N * n:, N * n:] = P
         weighted_gamma = weights @ gamma  # Qbar Gamma
-        H = gamma.T @ weighted_gamma + sla.block_diag(*([R] * N))
+        H = gamma.T @ weighted_gamma + np.kron(np.eye(N), R)
         # the optimum is a quadratic form in w = [x; c]: s = L w, J* = s'(Qbar - Qbar Gamma H^-1 Gamma' Qbar) s
         lift = np.hstack([phi, psi])
-        reduced = weights - weighted_gamma @ sla.cho_solve(sla.cho_factor(H), weighted_gamma.T)
+        reduced = weights - weighted_gamma @ np.linalg.solve(H, weighted_gamma.T)
         form = lift.T @ reduced @ lift
         self._form = 0.5 * (form + form.T)
         self._n = n

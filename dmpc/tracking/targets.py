@@ -29,7 +29,6 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from dmpc.core.system import CoupledSystem, LinearSet, stack_sets
 
@@ -250,6 +249,8 @@ class TargetSpace:
         residual = self._steady @ w
         if not np.any(np.abs(residual) > STEADY_TOLERANCE * max(1.0, float(np.abs(w).max()))):
             return w
+        import scipy.sparse.linalg as spla  # here: loaded only by who computes a target
+
         correction = spla.lsqr(self._steady, residual, atol=1e-15, btol=1e-15, iter_lim=10 * w.size)[0]
         return w - correction
 
