@@ -191,8 +191,8 @@ def figure_cells(row: dict, ref: dict) -> list[str]:
     share of ``ref``'s solves."""
     size = row.get("bytes")
     return [row["trigger"], _threshold(row), cell(row.get("closed_loop_cost"), ".4f"),
-            _ratio(row, ref, "closed_loop_cost", 6), cell(row.get("solves"), ".1f"), cell(row.get("keeps"), ".1f"),
-            cell(row.get("plan_messages"), ".1f"), cell(row.get("kept_notices"), ".1f"),
+            _ratio(row, ref, "closed_loop_cost", 6), cell(row.get("solves")), cell(row.get("keeps")),
+            cell(row.get("plan_messages")), cell(row.get("kept_notices")),
             "-" if size is None else f"{size / 1e3:.1f}", _ratio(row, ref, "solves", 2)]
 
 

@@ -181,7 +181,7 @@ class MpcQP:
         self._offset: tuple[np.ndarray, np.ndarray] | None = None
         # violations() multiplies a plan by the rows at every kept step: dense is faster while small
         self._dense_rows = self._rows.toarray() if self._rows.shape[0] * self._rows.shape[1] <= DENSE_ROWS else None
-        self._scale_stage_bounds()
+        self._scale_row_bounds()
 
     def set_offset(self, x_s: np.ndarray | None, u_s: np.ndarray | None) -> None:
         """Move the stage rows to deviation coordinates around a steady state: U - u_s, X - x_s.
@@ -195,7 +195,7 @@ class MpcQP:
             self._offset = None
             for rows, _, _ in self._stages:
                 self._l[rows], self._u[rows] = self._base[0][rows], self._base[1][rows]
-            self._scale_stage_bounds()
+            self._scale_row_bounds()
             return
         if self._offset is not None and np.array_equal(self._offset[0], x_s) and np.array_equal(self._offset[1], u_s):
             return
@@ -204,7 +204,7 @@ class MpcQP:
             moved = np.tile(H @ shift, steps)
             self._l[rows] = np.clip(self._base[0][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
             self._u[rows] = np.clip(self._base[1][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
-        self._scale_stage_bounds()
+        self._scale_row_bounds()
 
     def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
               terminal_upper: np.ndarray) -> QPSolution:
@@ -279,7 +279,7 @@ class MpcQP:
         excess = np.maximum((lower - rest) / lower_scale, (rest - upper) / upper_scale)
         return dynamics, max(float(excess.max()), 0.0) if excess.size else 0.0
 
-    def _scale_stage_bounds(self) -> None:
+    def _scale_row_bounds(self) -> None:
         """The bounds of the rows after the dynamics and their scales max(1, |bound|), for
         :meth:`violations`: the input and state rows' change only with :meth:`set_offset`, the
         terminal rows' are set by each call."""

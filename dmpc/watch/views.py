@@ -16,6 +16,7 @@ import re
 import numpy as np
 
 from dmpc.bus.keys import COORDINATOR_ROLE as COORDINATOR
+from dmpc.core.qp_status import KEPT
 from dmpc.watch.meta import RunMeta
 from dmpc.watch.state import StateRow, StepRow
 
@@ -23,8 +24,6 @@ COLORS = {"ok": "#2ca02c", "up": "#2ca02c", "late": "#ff7f0e", "fallback": "#e6b
           "down": "#d62728", "waiting": "#999999", "idle": "#999999", "coordinator": "#1f77b4"}
 CELL_COLORS = {"ok": "#dff0d8", "late": "#fde3c8", "fallback": "#fcf3c4", "lost": "#f6d0d0", "waiting": "#eeeeee"}
 _EVENT = re.compile(r"agent (\S+) (lost|back)")
-KEPT = "kept"
-"""The status of an agent that kept its plan (an event trigger)."""
 NO_ANSWER = frozenset({KEPT, "missed"})
 """Statuses of an agent that ran no QP at a step (or whose plan never came)."""
 REASONS = {
