@@ -15,7 +15,7 @@ from dmpc.agents.trigger import TARGET, Decision, KeepRule
 from dmpc.bus.messages import Kept, PlanMessage, Release
 from dmpc.core.steps import TriggerOptions
 from dmpc.core.system import CoupledSystem
-from dmpc.core.trajectories import Plan, assumed_trajectory, coupling_feedforward, kept_around, relative_to
+from dmpc.core.trajectories import OperatingPoint, Plan, assumed_trajectory, coupling_feedforward, kept_around
 from dmpc.core.unconstrained import UnconstrainedBound
 from dmpc.methods import DEFAULT_METHOD, Method, terminal_policy
 from dmpc.offline import ControllerDesign
@@ -63,7 +63,7 @@ class AgentController:
         self.qp = LocalQP(sub, design.gains.P[index], design.horizon, design.tightening[index], solver_settings,
                           terminal=terminal)
         self._plan: Plan | None = None  # this agent's plan of the last step answered
-        self._plan_target: tuple[np.ndarray, np.ndarray] | None = None
+        self._plan_target = OperatingPoint.origin(system.n, system.m)  # the operating point it was made around
         self._kept = 0  # consecutive keeps
         self._rule = None
         if trigger is not None and trigger.event:
@@ -73,7 +73,20 @@ class AgentController:
                                   trigger.max_keep)
 
     def feedforward(self, k: int, states: dict[int, np.ndarray], plans: dict[int, Plan | None]) -> np.ndarray:
-        """c_i(t) for t = 0..N-1 from the neighbours' assumed trajectories, shape (N, n_i)."""
+        """c_i(t) for t = 0..N-1 from the neighbours' assumed trajectories, shape (N, n_i).
+
+        Zeros with the ``nominal`` coupling or without neighbours.
+
+        Parameters
+        ----------
+        k : int
+            The step.
+        states : dict j -> ndarray (n_j,)
+            The measured states x_j(k); every neighbour's is needed.
+        plans : dict j -> Plan or None
+            The neighbours' plans to build the assumed trajectories from (missing or None: the
+            K-rollout from x_j(k)).
+        """
         if not self.use_feedforward or not self.neighbours:
             return np.zeros((self.N, self.n))
         assumed = [assumed_trajectory(plans.get(j), k, states[j], self.N, self._gamma[j], self._K[j])
@@ -101,37 +114,41 @@ class AgentController:
         c = self.feedforward(k, states, plans) if coupling is None else coupling
         return self.qp.solve(states[self.index], c, centre, size)
 
-    def _view(self, release: Release, plans: dict[int, Plan | None]) -> tuple[dict, dict, Offset]:
-        """The states of this agent and its neighbours and their plans at the release, in
-        deviation coordinates around the setpoint target, and that target's own part (x_s_i,
-        u_s_i); the QP's stage rows moved to it (docs/algorithm.md, "Setpoints"). Without a
-        target: as they are, and None."""
-        x = release.x
-        states = {j: x[part] for j, part in self._state_slices.items()}
+    def operating_point(self, release: Release) -> OperatingPoint:
+        """The operating point (x_s (n,), u_s (m,)) of the whole system that ``release``'s step is
+        controlled around: its setpoint target, or the origin, which the wire leaves out
+        (:class:`~dmpc.bus.messages.Release`)."""
         if release.target is None:
-            self.qp.set_target(None, None)
-            return states, plans, None
-        x_s, u_s = release.target
-        if u_s.shape != (self.system.m,):
-            raise ValueError(f"a release's target has {u_s.size} inputs, the system {self.system.m}")
-        offsets = {j: (x_s[part], u_s[self.system.us(j)]) for j, part in self._state_slices.items()}
-        own = offsets[self.index]
-        self.qp.set_target(*own)
-        around = {j: x_j - offsets[j][0] for j, x_j in states.items()}
-        moved = {j: relative_to(plan, *offsets[j]) for j, plan in plans.items() if j in offsets}
-        return around, moved, own
+            return OperatingPoint.origin(self.system.n, self.system.m)
+        point = OperatingPoint(*release.target)
+        if point.u.shape != (self.system.m,):
+            raise ValueError(f"a release's target has {point.u.size} inputs, the system {self.system.m}")
+        return point
 
-    def _decide(self, release: Release, x: np.ndarray, coupling: np.ndarray, own: Offset, centre: np.ndarray,
-                size: float) -> Decision:
-        """The event trigger's decision at round 0 (:class:`dmpc.agents.trigger.KeepRule`)."""
+    def _view(self, release: Release, point: OperatingPoint, plans: dict[int, Plan | None]
+              ) -> tuple[dict[int, np.ndarray], dict[int, Plan | None], OperatingPoint]:
+        """The states (n_j,) of this agent and its neighbours and their plans at the release, in
+        deviation coordinates around the step's operating point ``point``, and this agent's part
+        of it (x_s_i, u_s_i); the QP's stage rows moved to it (docs/algorithm.md, "Setpoints")."""
+        parts = {j: point.subsystem(self.system, j) for j in self._state_slices}
+        own = parts[self.index]
+        self.qp.set_target(*own)
+        states = {j: parts[j].state_around(release.x[cut]) for j, cut in self._state_slices.items()}
+        moved = {j: parts[j].plan_around(plan) for j, plan in plans.items() if j in parts}
+        return states, moved, own
+
+    def _decide(self, release: Release, point: OperatingPoint, own: OperatingPoint, x: np.ndarray,
+                coupling: np.ndarray, centre: np.ndarray, size: float) -> Decision:
+        """The event trigger's decision at round 0 (:class:`dmpc.agents.trigger.KeepRule`): ``x``
+        (n_i,), ``coupling`` (N, n_i) and ``centre`` (n_i,) around this agent's part ``own`` of the
+        step's operating point ``point``."""
         assert self._rule is not None
         previous = self._plan
         if previous is not None and release.reference(self.index) != (previous.k, previous.round):
             previous = None  # the coordinator holds another plan of this agent's (a fallback, a refusal)
-        if previous is not None and not _same_target(self._plan_target, release.target):
+        if previous is not None and not self._plan_target.same_as(point):
             return Decision(TARGET)
-        around = relative_to(previous, *own) if own is not None else previous
-        return self._rule.decide(release.k, x, coupling, centre, size, around, self._kept)
+        return self._rule.decide(release.k, x, coupling, centre, size, own.plan_around(previous), self._kept)
 
     def answer(self, release: Release, plans: dict[int, Plan | None], run_id: str,
                clock: Callable[[], float] | None = None) -> PlanMessage | Kept:
@@ -150,17 +167,17 @@ class AgentController:
             The sender's clock, read once the plan is solved: the message's ``sent_at``
             (the records' latency); 0 without one.
         """
-        states, plans, own = self._view(release, plans)
+        point = self.operating_point(release)
+        states, plans, own = self._view(release, point, plans)
         centre, size = release.centres[self._own], float(release.sizes[self.index])
         reason, coupling = "", None
         if self._rule is not None and release.round == 0:
             coupling = self.feedforward(release.k, states, plans)
-            decision = self._decide(release, states[self.index], coupling, own, centre, size)
+            decision = self._decide(release, point, own, states[self.index], coupling, centre, size)
             if decision.keep:
                 assert decision.plan is not None
-                kept = decision.plan if own is None else Plan(release.k, 0, decision.plan.z + own[0],
-                                                               decision.plan.v + own[1])
-                self._remember(kept, release.target, kept=True)
+                kept = Plan(release.k, 0, *own.trajectory_back(decision.plan.z, decision.plan.v))
+                self._remember(kept, point, kept=True)
                 return Kept(run=run_id, k=release.k, round=release.round, sender=self.name,
                             sent_at=clock() if clock is not None else 0.0)
             reason = decision.reason
@@ -168,8 +185,8 @@ class AgentController:
             sol = self.solve(release.k, states, centre, size, plans)
         else:
             sol = self.solve(release.k, states, centre, size, plans, coupling=coupling)
-        z, v = (sol.z, sol.v) if own is None else (sol.z + own[0], sol.v + own[1])
-        self._remember(Plan(release.k, release.round, z, v) if sol.status.feasible else None, release.target)
+        z, v = own.trajectory_back(sol.z, sol.v)
+        self._remember(Plan(release.k, release.round, z, v) if sol.status.feasible else None, point)
         return PlanMessage(run=run_id, k=release.k, round=release.round, sender=self.name,
                            status=sol.status.value, z=z, v=v, cost=sol.cost, solve_time=sol.solve_time,
                            qp_iterations=int(sol.iterations), sent_at=clock() if clock is not None else 0.0,
@@ -177,22 +194,12 @@ class AgentController:
 
     def neighbour_kept(self, j: int, plan: Plan, release: Release) -> Plan:
         """Neighbour j's plan of ``release``'s step kept (its ``plan`` of the step before, with the
-        release's state, centre and target), as the neighbour and the coordinator built it."""
+        release's state, centre and operating point), as the neighbour and the coordinator built it."""
         part = self.system.xs(j)
-        offset = None if release.target is None else (release.target[0][part], release.target[1][self.system.us(j)])
-        return kept_around(plan, release.k, release.x[part], release.centres[part], self._gamma[j], self._K[j], offset)
+        return kept_around(plan, release.k, release.x[part], release.centres[part], self._gamma[j], self._K[j],
+                           self.operating_point(release).subsystem(self.system, j))
 
-    def _remember(self, plan: Plan | None, target: tuple[np.ndarray, np.ndarray] | None, kept: bool = False) -> None:
-        """This agent's plan of the step (its plant coordinates) and the target it was made for."""
-        self._plan, self._plan_target = plan, target
+    def _remember(self, plan: Plan | None, point: OperatingPoint, kept: bool = False) -> None:
+        """This agent's plan of the step (its plant coordinates) and the operating point it was made around."""
+        self._plan, self._plan_target = plan, point
         self._kept = self._kept + 1 if kept else 0
-
-
-Offset = tuple[np.ndarray, np.ndarray] | None
-"""A subsystem's part (x_s_i, u_s_i) of a setpoint target, or None at the origin."""
-
-
-def _same_target(a: tuple[np.ndarray, np.ndarray] | None, b: tuple[np.ndarray, np.ndarray] | None) -> bool:
-    if a is None or b is None:
-        return a is b
-    return np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])

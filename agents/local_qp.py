@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dmpc.core.mpc_qp import DEFAULT_SETTINGS, MpcQP, QPSolution, QPStatus, StageRows
+from dmpc.core.mpc_qp import DEFAULT_SETTINGS, MpcQP, QPSolution, StageRows
+from dmpc.core.qp_status import QPStatus
 from dmpc.core.system import Subsystem
 from dmpc.methods.terminal_rows import AgentTerminal, BoxTerminal
 from dmpc.offline.tubes import Tightening
@@ -69,13 +70,14 @@ class LocalQP:
     def violations(self, x: np.ndarray, coupling: np.ndarray, centre: np.ndarray, size: float, z: np.ndarray,
                    v: np.ndarray) -> tuple[float, float]:
         """How far the plan z (N+1, n), v (N, m) is from feasible for the QP :meth:`solve` would
-        solve with these arguments: (dynamics residual, excess over the other rows), relative."""
+        solve with the same x, coupling, centre and size: (dynamics residual, excess over the other
+        rows), relative."""
         lower, upper = self.terminal.bounds(centre, size)
         return self._qp.violations(x, coupling, lower, upper, z, v)
 
-    def set_target(self, x_s: np.ndarray | None, u_s: np.ndarray | None) -> None:
+    def set_target(self, x_s: np.ndarray, u_s: np.ndarray) -> None:
         """Solve in deviation coordinates around the steady state x_s (n,), u_s (m,) of this
-        subsystem from now on: U_i - u_s and X_i - x_s (None: the origin)."""
+        subsystem from now on: U_i - u_s and X_i - x_s (zeros: the origin)."""
         self._qp.set_offset(x_s, u_s)
 
     def cost(self, z: np.ndarray, v: np.ndarray) -> float:

@@ -11,17 +11,20 @@ import logging
 import os
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import TypeVar
 
 from dmpc.agents.controller import AgentController
+from dmpc.agents.cooperative import CooperativeController
 from dmpc.bus import keys
 from dmpc.bus.codec import MAX_NAME, DecodeError, VersionMismatch, decode, encode
 from dmpc.bus.interface import Bus, Timer
-from dmpc.bus.messages import COORDINATOR, Kept, PlanMessage, Ready, Release, Stop, design_claim
+from dmpc.bus.messages import COORDINATOR, Kept, Message, PlanMessage, Ready, Release, Stop, design_claim
 from dmpc.core.qp_status import SOLVED
 from dmpc.core.trajectories import Plan
 from dmpc.security.rejects import Rejections, out_of_range
 
 log = logging.getLogger("dmpc.agent")
+_Received = TypeVar("_Received", Release, PlanMessage, Stop)  # what an agent decodes from the bus
 KEEP_PLANS = 8
 # A release may skip ahead of the last one (releases lost on the way, a deadline passed) by at
 # most this many steps or rounds; beyond it the message cannot come from this run's coordinator.
@@ -34,7 +37,7 @@ class AgentNode:
     Parameters
     ----------
     bus : Bus
-    controller : AgentController
+    controller : AgentController or CooperativeController
     names : list of str
         Subsystem names in index order.
     run_id : str
@@ -51,7 +54,7 @@ class AgentNode:
         (a process serving several agents waits for that).
     """
 
-    def __init__(self, bus: Bus, controller: AgentController, names: list[str], run_id: str,
+    def __init__(self, bus: Bus, controller: AgentController | CooperativeController, names: list[str], run_id: str,
                  design_digest: str, plan_wait: float | None = None, scenario: str = "",
                  on_change: Callable[[], None] | None = None) -> None:
         self.bus = bus
@@ -162,7 +165,7 @@ class AgentNode:
     def _reject(self, sender: str, why: str) -> None:
         self.rejects(sender, why)
 
-    def _decode(self, key: str, payload: bytes, expected: type):
+    def _decode(self, key: str, payload: bytes, expected: type[_Received]) -> _Received | None:
         sender = keys.last_chunk(key) if expected is PlanMessage else COORDINATOR
         try:
             msg = _decode_shared(payload)
@@ -219,7 +222,7 @@ class AgentNode:
         if msg.kept:
             self._rebuild_kept(msg)
         self._previous = msg
-        self._prune_plans()
+        self._prune_plans(msg.k)
         if not self._released:
             self._released = True
             self._first_k = msg.k
@@ -309,12 +312,12 @@ class AgentNode:
                 return f"stale: plan of step {msg.k} while the last release is of step {k}"
         return None
 
-    def _prune_plans(self) -> None:
-        """Forget plans stored before the first release that lie beyond the window.
+    def _prune_plans(self, k: int) -> None:
+        """Forget plans stored before the first release that lie beyond the window of step ``k``
+        (the newest release's).
 
         Old plans stay: the coordinator may keep referring to a lost neighbour's last plan.
         """
-        k = self._latest[0]
         for store in self.plans.values():
             for ref in [ref for ref in store if ref[0] > k + 1]:
                 del store[ref]
@@ -335,7 +338,7 @@ class AgentNode:
         release = self.pending
         if release is None or self.stopped:
             return
-        plans = {}
+        plans: dict[int, Plan | None] = {}
         for name, j in self.neighbour_names.items():
             ref = release.reference(j)
             if ref is not None and name in release.provided:
@@ -401,21 +404,31 @@ def _unchanged() -> None:
     pass
 
 
-_last_decoded: list = [None, None]  # [payload, message or DecodeError]
+class _LastDecoded:
+    """The payload decoded last in this process and what it gave: a message or its DecodeError."""
+
+    def __init__(self) -> None:
+        self.payload: bytes | None = None
+        self.result: Message | DecodeError | None = None
 
 
-def _decode_shared(payload: bytes):
+_last_decoded = _LastDecoded()
+
+
+def _decode_shared(payload: bytes) -> Message:
     """``decode(payload)``, once per payload object: the agents of one process are handed the same
     bytes of a release or a plan (the bus fans them out), and decoded messages are read-only
     (their arrays are views on the payload), so they share the decoding. Each agent still makes
     its own checks and counts its own drops."""
-    if _last_decoded[0] is not payload:
+    last = _last_decoded
+    if last.payload is not payload:
+        result: Message | DecodeError
         try:
             result = decode(payload)
         except DecodeError as exc:
             result = exc
-        _last_decoded[:] = payload, result
-    result = _last_decoded[1]
-    if isinstance(result, DecodeError):
-        raise result
-    return result
+        last.payload, last.result = payload, result
+    if isinstance(last.result, DecodeError):
+        raise last.result
+    assert last.result is not None  # set with the payload
+    return last.result

@@ -12,10 +12,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from dmpc.agents.controller import AgentController
+from dmpc.agents.cooperative import CooperativeController
 from dmpc.agents.node import AgentNode
 from dmpc.bus import keys
 from dmpc.bus.interface import Bus
 from dmpc.bus.messages import COORDINATOR_GRACE
+from dmpc.methods import method_spec
 from dmpc.prepared import Prepared
 from dmpc.records.agent_reports import FIRST_RELEASE
 from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
@@ -45,19 +47,26 @@ class AgentOutcome:
 
 def agent_node(prepared: Prepared, name: str, bus: Bus, run_id: str,
                on_change: Callable[[], None] | None = None) -> AgentNode:
-    """The controller of subsystem ``name`` of a prepared run, as a node on ``bus`` (not announced yet).
+    """The controller of subsystem ``name`` of a prepared run, as a node on ``bus`` (not announced yet)
+    in run ``run_id``; ``on_change`` is called when the node starts, stops or loses the coordinator.
 
     The one place that builds an agent from a prepared run: ``dmpc agent`` and ``dmpc simulate``
     (:mod:`dmpc.runtime.inprocess`) both do it here.
     """
-    controller = AgentController(prepared.system, prepared.design, prepared.names.index(name),
-                                 coupling=prepared.coupling, method=prepared.method, trigger=prepared.trigger)
+    index = prepared.names.index(name)
+    controller: AgentController | CooperativeController
+    if method_spec(prepared.method).cooperative:
+        controller = CooperativeController(prepared.system, prepared.design, index)
+    else:
+        controller = AgentController(prepared.system, prepared.design, index, coupling=prepared.coupling,
+                                     method=prepared.method, trigger=prepared.trigger)
     return AgentNode(bus, controller, prepared.names, run_id, prepared.digest, plan_wait=prepared.plan_wait,
                      scenario=prepared.name, on_change=on_change)
 
 
 def run_agent(prepared: Prepared, name: str, bus: Bus, run_id: str, startup_timeout: float) -> AgentOutcome:
-    """Serve agent ``name`` alone: :func:`run_agents` with one name."""
+    """Serve agent ``name`` alone: :func:`run_agents` with one name (``prepared``, ``bus``, ``run_id``
+    and ``startup_timeout`` as there)."""
     return run_agents(prepared, [name], bus, run_id, startup_timeout)[0]
 
 
@@ -111,7 +120,7 @@ def run_agents(prepared: Prepared, names: Sequence[str], bus: Bus, run_id: str, 
 
 
 def process_exit_code(outcomes: Sequence[AgentOutcome]) -> int:
-    """The exit code of a process serving these agents: the worst of theirs (the highest)."""
+    """The exit code of a process serving the agents of ``outcomes``: the worst of theirs (the highest)."""
     return max(o.code for o in outcomes)
 
 
@@ -131,7 +140,8 @@ def serve(nodes: dict[str, AgentNode], bus: Bus, run_id: str, startup_timeout: f
           ends: dict[str, tuple[int, str]]) -> None:
     """Run the bus until every node has ended, filling ``ends`` with (exit code, message) per name.
 
-    The nodes must have been made with ``on_change=changes``: the bus runs until a node changes
+    ``run_id`` names the run in the messages; a node that has no release within ``startup_timeout``
+    seconds gives up. The nodes must have been made with ``on_change=changes``: the bus runs until a node changes
     or a deadline (start-up, a grace) comes, and only then are the nodes looked at, so the cost
     per message does not grow with the number of nodes.
     """
@@ -192,7 +202,7 @@ def _no_release(name: str, node: AgentNode, startup_timeout: float, run_id: str)
 
 
 def names_text(names: Sequence[str], shown: int = 6) -> str:
-    """``1, 2, 3``, or the first and last few with the count when there are more than ``shown``."""
+    """``names`` as ``1, 2, 3``, or the first and last few with the count when there are more than ``shown``."""
     names = list(names)
     if len(names) <= shown:
         return ", ".join(names)

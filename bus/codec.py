@@ -11,6 +11,7 @@ of their own, with each check done once and no walk over the values.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import fields
 
 import msgpack
@@ -70,20 +71,33 @@ def wire_fields(cls: type) -> tuple[str, ...]:
 
 _FIELD_SETS: dict[type, frozenset] = {cls: frozenset(names) for cls, names in _FIELDS.items()}
 # fields a sender may leave out (added after the first release of the format); decode fills in the default
-_OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"}), Release: frozenset({"target", "kept"}),
+_OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"}), Release: frozenset({"target", "kept", "iterate"}),
                                     PlanMessage: frozenset({"reason"})}
 
 
 def encode(msg: Message) -> bytes:
-    """Serialise a message to bytes."""
+    """Serialise a message to bytes.
+
+    Parameters
+    ----------
+    msg : Message
+        The message to send, one of the classes of :data:`dmpc.bus.messages.MESSAGE_TYPES` exactly
+        (a subclass has no wire name).
+
+    Returns
+    -------
+    bytes
+        A msgpack map with the protocol version and the message's type name; ``decode`` reads it back.
+    """
     cls = type(msg)
-    if cls is PlanMessage:
+    # type(msg) is C (not isinstance): the exact class picks the encoder, as the wire name does
+    if type(msg) is PlanMessage:
         body = _plan_body(msg)
-    elif cls is Release:
+    elif type(msg) is Release:
         body = _release_body(msg)
-    elif cls is Setpoint:
+    elif type(msg) is Setpoint:
         body = _setpoint_body(msg)
-    elif cls is SetpointAnswer:
+    elif type(msg) is SetpointAnswer:
         body = _answer_body(msg)
     else:
         body = {VERSION_FIELD: PROTOCOL_VERSION, "type": TYPE_NAMES[cls]}
@@ -116,7 +130,8 @@ def _release_body(m: Release) -> dict:
             "skipped": list(m.skipped),
             "provided": {name: [_wire_array(z), _wire_array(v)] for name, (z, v) in m.provided.items()},
             **({} if m.target is None else {"target": [_wire_array(m.target[0]), _wire_array(m.target[1])]}),
-            **({"kept": list(m.kept)} if m.kept else {})}
+            **({"kept": list(m.kept)} if m.kept else {}),
+            **({} if m.iterate is None else {"iterate": [_wire_array(m.iterate[0]), _wire_array(m.iterate[1])]})}
 
 
 def _setpoint_body(m: Setpoint) -> dict:
@@ -152,15 +167,16 @@ def decode(payload: bytes) -> Message:
     try:
         body = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True,
                                max_bin_len=MAX_PAYLOAD, max_str_len=4096, max_array_len=4096, max_map_len=4096)
-    except Exception as exc:  # msgpack raises several unrelated types on garbage
+    except Exception as exc:  # noqa: BLE001 - msgpack raises several unrelated types on garbage
         raise DecodeError(f"not msgpack: {type(exc).__name__}") from None
     if type(body) is not dict:
         raise DecodeError("top level is not a map")
     if body.get(VERSION_FIELD) != PROTOCOL_VERSION:
         raise VersionMismatch(body.get(VERSION_FIELD, body.get(OLD_VERSION_FIELD)))
-    cls = MESSAGE_TYPES.get(body.get("type")) if isinstance(body.get("type"), str) else None
+    kind = body.get("type")
+    cls = MESSAGE_TYPES.get(kind) if isinstance(kind, str) else None
     if cls is None:
-        raise DecodeError(f"unknown message type {body.get('type')!r}")
+        raise DecodeError(f"unknown message type {kind!r}")
     if body.keys() == _WIRE_KEYS[cls]:
         return _PARSERS[cls](body)
     expected = _FIELD_SETS[cls]
@@ -268,9 +284,18 @@ def _parse_release(b: dict) -> Release:
         raise DecodeError("kept: expected a non-empty list of at most one name per agent")
     for name in kept:
         _str(name, "kept name")
+    iterate = None
+    if "iterate" in b:
+        pair = b["iterate"]
+        if type(pair) is not list or len(pair) != 2:
+            raise DecodeError("iterate: expected [z, v]")
+        iterate = (_array(pair[0], "iterate.z", 2), _array(pair[1], "iterate.v", 2))
+        if iterate[0].shape[1] != x.size or iterate[0].shape[0] != iterate[1].shape[0] + 1:
+            raise DecodeError(f"iterate: z must have shape (N + 1, {x.size}) with one row more than v, got "
+                              f"{iterate[0].shape} and {iterate[1].shape}")
     return Release(run=_str(b["run"], "run"), k=_int(b, "k"), round=_int(b, "iteration"), x=x, centres=centres,
                    sizes=sizes, assumed=assumed, sender=_str(b["sender"], "sender"), skipped=tuple(skipped),
-                   provided=parsed_provided, target=target, kept=tuple(kept))
+                   provided=parsed_provided, target=target, kept=tuple(kept), iterate=iterate)
 
 
 def _parse_plan(b: dict) -> PlanMessage:
@@ -351,7 +376,7 @@ def _parse_answer(b: dict) -> SetpointAnswer:
                           accepted=accepted, k=k, reason=reason)
 
 
-_PARSERS = {Release: _parse_release, PlanMessage: _parse_plan, Kept: _parse_kept, Ready: _parse_ready, Stop: _parse_stop,
+_PARSERS: dict[type, Callable[[dict], Message]] = {Release: _parse_release, PlanMessage: _parse_plan, Kept: _parse_kept, Ready: _parse_ready, Stop: _parse_stop,
             Inputs: _parse_inputs, State: _parse_state, Setpoint: _parse_setpoint, SetpointAnswer: _parse_answer}
 # every field present: the common case, checked with one comparison
 _WIRE_KEYS = {cls: frozenset(names) | {VERSION_FIELD, "type"} for cls, names in _FIELD_SETS.items()}

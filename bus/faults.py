@@ -36,13 +36,23 @@ class LinkFault:
 
 @dataclass(frozen=True)
 class FaultPlan:
-    """Faults for every link: a default plus per-(source, receiver) overrides."""
+    """Faults for every link: a default plus per-(source, receiver) overrides.
+
+    Attributes
+    ----------
+    default : LinkFault
+        The faults of every link not in ``links``.
+    links : tuple of (source, receiver, LinkFault)
+        The links with faults of their own.
+    seed : int
+        Seeds the draws of every link's faults."""
 
     default: LinkFault = LinkFault()
     links: tuple[tuple[str, str, LinkFault], ...] = ()
     seed: int = 0
 
     def link(self, source: str, receiver: str) -> LinkFault:
+        """The faults of the link from ``source`` to ``receiver`` (the default unless overridden)."""
         for s, r, fault in self.links:
             if s == source and r == receiver:
                 return fault
@@ -59,7 +69,7 @@ class FaultPlan:
 
     @classmethod
     def from_json(cls, data: dict) -> "FaultPlan":
-        """The plan :meth:`to_json` gave (KeyError, TypeError or ValueError when malformed)."""
+        """The plan :meth:`to_json` gave, read from ``data`` (KeyError, TypeError or ValueError when malformed)."""
         return cls(default=LinkFault(**data["default"]),
                    links=tuple((s, r, LinkFault(**f)) for s, r, f in data["links"]), seed=int(data["seed"]))
 

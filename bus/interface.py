@@ -54,7 +54,7 @@ class Bus(ABC):
         that arrived just before it.
         """
 
-    def expect(self, key: str | None) -> None:
+    def expect(self, key: str | None) -> None:  # noqa: B027 - a hint with a default: most transports ignore it
         """A hint: the node's next needed message comes on hot key ``key`` (None: any). Transports
         that wait on one hot key at a time wait on it; others ignore the hint."""
 
@@ -97,7 +97,7 @@ class Bus(ABC):
 
 
 def key_matches(pattern: str, key: str) -> bool:
-    """Exact match, or ``a/b/*`` matching ``a/b/<one chunk>``."""
+    """Whether ``key`` matches ``pattern``: exactly, or ``a/b/*`` matching ``a/b/<one chunk>``."""
     if pattern.endswith("/*"):
         prefix = pattern[:-1]
         return key.startswith(prefix) and "/" not in key[len(prefix):] and len(key) > len(prefix)

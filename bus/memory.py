@@ -9,6 +9,7 @@ from __future__ import annotations
 import heapq
 import itertools
 from collections.abc import Callable
+from functools import partial
 
 from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer, key_matches
 
@@ -47,7 +48,7 @@ class MemoryBus(Bus):
         data = bytes(payload)
         for pattern, handler in list(self._subs):
             if key_matches(pattern, key):
-                self._schedule(self._time, lambda h=handler: h(key, data))
+                self._schedule(self._time, partial(handler, key, data))
 
     def subscribe(self, key: str, handler: Handler, hot: bool = False) -> None:
         self._subs.append((key, handler))
@@ -57,7 +58,7 @@ class MemoryBus(Bus):
         self._notify(key, True)
 
     def drop_alive(self, key: str) -> None:
-        """Withdraw a token (what a crashed process's session does)."""
+        """Withdraw the token on ``key`` (what a crashed process's session does)."""
         if key in self._alive:
             self._alive.discard(key)
             self._notify(key, False)
@@ -65,13 +66,13 @@ class MemoryBus(Bus):
     def _notify(self, key: str, alive: bool) -> None:
         for pattern, handler in self._watchers:
             if key_matches(pattern, key):
-                self._schedule(self._time, lambda h=handler: h(key, alive))
+                self._schedule(self._time, partial(handler, key, alive))
 
     def watch_alive(self, pattern: str, handler: AliveHandler) -> None:
         self._watchers.append((pattern, handler))
         for key in sorted(self._alive):
             if key_matches(pattern, key):
-                self._schedule(self._time, lambda k=key: handler(k, True))
+                self._schedule(self._time, partial(handler, key, True))
 
     def now(self) -> float:
         return self._time

@@ -62,12 +62,20 @@ class Release:
         Plans supplied by the coordinator itself (the centralised seed at k = 0); they stand for
         the plans named in ``assumed``. Usually empty.
     target : (ndarray (n,), ndarray (m,)) or None
-        The setpoint target (x_s, u_s) of the whole system the step is controlled around; None
-        (left out on the wire) at the origin.
+        The setpoint target (x_s, u_s) of the whole system the step is controlled around. The
+        origin (no setpoint) is a target like any other, zeros, but travels as None: left out on
+        the wire, as before targets existed, and read back as the origin by whoever receives it
+        (:meth:`dmpc.agents.controller.AgentController.operating_point`). A sender leaves it out
+        exactly when the target is the origin; zeros written out mean the same.
     kept : tuple of str
         The agents that kept their plan at step k - 1 (an event trigger): the plans ``assumed``
         names for them are their plans of step k - 2 kept (:func:`dmpc.core.trajectories.kept_plan`
         with the state and centre of release k - 1). Left out on the wire when empty.
+    iterate : (ndarray (N+1, n), ndarray (N, m)) or None
+        The cooperative method's iterate of the round (``tv-box-coop``; docs/algorithm.md,
+        "Cooperative DMPC"): every subsystem's planned states z and inputs v, in the plant's
+        coordinates, z[0] = x. Each agent proposes its own inputs against it. None (left out on
+        the wire) for the other methods.
     """
 
     run: str
@@ -82,6 +90,7 @@ class Release:
     provided: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     target: tuple[np.ndarray, np.ndarray] | None = None
     kept: tuple[str, ...] = ()
+    iterate: tuple[np.ndarray, np.ndarray] | None = None
 
     @cached_property
     def kept_set(self) -> frozenset[str]:
@@ -101,6 +110,14 @@ class PlanMessage:
 
     Attributes
     ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
+    k : int
+        The step of the release the plan answers.
+    round : int
+        Its Jacobi round.
+    sender : str
+        The agent's subsystem name (the key's last chunk).
     status : str
         A QPStatus value.
     z : ndarray, shape (N + 1, n_i)
@@ -111,6 +128,7 @@ class PlanMessage:
     solve_time : float
         Seconds in the solver.
     qp_iterations : int
+        The solver's iteration count.
     sent_at : float
         Sender's clock when published (latency measurement only).
     reason : str
@@ -135,7 +153,19 @@ class PlanMessage:
 @dataclass(frozen=True)
 class Kept:
     """Agent ``sender`` kept its shifted plan at step k, round ``round`` (an event trigger): the
-    coordinator rebuilds the plan from the agent's last one, x(k) and alpha(k)."""
+    coordinator rebuilds the plan from the agent's last one, x(k) and alpha(k).
+
+    Attributes
+    ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
+    k, round : int
+        The step and round of the release it answers (round 0: an agent keeps only there).
+    sender : str
+        The agent's subsystem name (the key's last chunk).
+    sent_at : float
+        Sender's clock when published (latency measurement only).
+    """
 
     run: str
     k: int
@@ -150,6 +180,22 @@ class Ready:
 
     ``scenario`` (its scenario's name) and ``horizon`` (N) only help to say how a design
     differs from the plant's; a sender may leave them out ("" and 0: unknown).
+
+    Attributes
+    ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
+    sender : str
+        The agent's subsystem name.
+    design_digest : str
+        The digest of the agent's design; the coordinator starts only with agents whose digest
+        equals its own.
+    pid : int
+        The agent's process id (for the records; 0 when not given).
+    scenario : str
+        The agent's scenario's name ("" when not given).
+    horizon : int
+        The agent's horizon N (0 when not given).
     """
 
     run: str
@@ -162,7 +208,19 @@ class Ready:
 
 @dataclass(frozen=True)
 class Stop:
-    """The run is over at step k; ``reason`` is ``finished``, ``aborted`` or ``failed: ...``."""
+    """The run is over at step k; ``reason`` is ``finished``, ``aborted`` or ``failed: ...``.
+
+    Attributes
+    ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
+    k : int
+        The step at which the run stopped.
+    reason : str
+        ``finished``, ``aborted``, or ``failed: ...`` with the reason.
+    sender : str
+        Who stops the run: the coordinator.
+    """
 
     run: str
     k: int
@@ -176,8 +234,14 @@ class Inputs:
 
     Attributes
     ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
+    k : int
+        The step whose inputs these are.
     u : dict name -> ndarray, shape (m_i,)
         Subsystem i's input u_i(k), for every subsystem in the scenario's order.
+    sender : str
+        Who decided them: the coordinator.
     """
 
     run: str
@@ -195,6 +259,12 @@ class State:
 
     Attributes
     ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
+    k : int
+        The step whose state this is: x(0) at the start, x(k + 1) after the inputs of step k.
+    sender : str
+        ``"plant"``, or ``"sensor-<name>"`` (the key's last chunk).
     x : dict name -> ndarray, shape (n_i,)
         Subsystem i's measured state x_i(k).
     """
@@ -212,6 +282,8 @@ class Setpoint:
 
     Attributes
     ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
     sender : str
         Who asks (the key's last chunk); the answer goes to ``setpoint-answer/<sender>``.
     id : int
@@ -235,7 +307,23 @@ class Setpoint:
 @dataclass(frozen=True)
 class SetpointAnswer:
     """The coordinator's answer to request ``id``: ``accepted`` from step ``k`` on, or refused
-    (``k`` = -1) for ``reason``."""
+    (``k`` = -1) for ``reason``.
+
+    Attributes
+    ----------
+    run : str
+        The run id (every key starts with ``dmpc/<run>/``): a message of another run is dropped.
+    id : int
+        The request's ``id``.
+    subsystem : str
+        The request's ``subsystem``.
+    accepted : bool
+        True: the request joins the setpoint schedule.
+    k : int
+        Accepted: the first step the request holds at. Refused: -1.
+    reason : str
+        Why it was refused; "" when accepted.
+    """
 
     run: str
     id: int
@@ -262,7 +350,14 @@ def design_claim(name: str, digest: str) -> str:
 
 
 def messages_equal(a: Message, b: Message) -> bool:
-    """Equality that compares arrays by value (NaN equal to NaN)."""
+    """Equality that compares arrays by value (NaN equal to NaN).
+
+    Parameters
+    ----------
+    a, b : Message
+        The two messages: equal when of the same class and every field equal, arrays in shape,
+        dtype and value, inside tuples, lists and maps too.
+    """
     if type(a) is not type(b):
         return False
     for name in a.__dataclass_fields__:

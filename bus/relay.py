@@ -68,7 +68,7 @@ def _reason(exc: BaseException) -> str:
 
 
 def format_address(address: tuple[str, int]) -> str:
-    """``host:port``, with brackets around an IPv6 host."""
+    """``host:port`` of ``address`` (host, port), with brackets around an IPv6 host."""
     host, port = address
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
@@ -147,7 +147,8 @@ class Relay:
         return self._thread is not None and self._thread.is_alive()
 
     def start(self, timeout: float = 5.0) -> None:
-        """Listen and serve in a background thread; RelayError if the address cannot be bound."""
+        """Listen and serve in a background thread; RelayError if the address cannot be bound within
+        ``timeout`` seconds."""
         if self._thread is not None:
             raise RuntimeError("a relay starts only once")
         ready = threading.Event()
@@ -161,11 +162,12 @@ class Relay:
             raise RelayError(f"cannot listen on {format_address(self.listen)} ({_reason(failure[0])})") from None
 
     def stop(self, timeout: float = 1.0) -> None:
-        """Close the listener and every connection (data still held is dropped); idempotent."""
-        loop, thread = self._loop, self._thread
-        if loop is not None and thread is not None and thread.is_alive():
+        """Close the listener and every connection (data still held is dropped), waiting at most
+        ``timeout`` seconds for the thread; idempotent."""
+        loop, thread, stop = self._loop, self._thread, self._stop
+        if loop is not None and thread is not None and stop is not None and thread.is_alive():
             try:
-                loop.call_soon_threadsafe(self._stop.set)
+                loop.call_soon_threadsafe(stop.set)
             except RuntimeError:  # the loop closed in between
                 pass
             thread.join(timeout)
@@ -183,7 +185,7 @@ class Relay:
         self._loop = loop
         try:
             loop.run_until_complete(self._serve(ready, failure))
-        except BaseException as exc:  # reported to start(), or kept in ``error``
+        except BaseException as exc:  # noqa: BLE001 - reported to start(), or kept in ``error``
             if not ready.is_set():
                 failure.append(exc)
                 ready.set()
@@ -225,6 +227,7 @@ class Relay:
         self.stats.connections += 1
         number = self.stats.connections
         task = asyncio.current_task()
+        assert task is not None  # asyncio runs each connection's handler as a task
         self._tasks.add(task)
         self._writers.add(writer)
         try:

@@ -48,7 +48,13 @@ class TlsFiles:
 
     The same certificate and key are used when listening and when connecting; the server
     certificate needs a subject alternative name matching the host that peers connect to.
-    """
+
+    Attributes
+    ----------
+    ca : path
+        The certificate of the CA that signed every node's certificate.
+    cert, key : path
+        This node's certificate and its private key."""
 
     ca: str | Path
     cert: str | Path
@@ -85,7 +91,10 @@ def check_endpoint(endpoint: str, *, connect: bool = False) -> str:
 
 def endpoint_host(endpoint: str) -> str:
     """The host part of a checked endpoint, without IPv6 brackets."""
-    return _ENDPOINT.match(endpoint)["host"].strip("[]")
+    match = _ENDPOINT.match(endpoint)
+    if match is None:
+        raise ValueError(f"bad Zenoh endpoint {endpoint!r}: expected <protocol>/<host>:<port>")
+    return match["host"].strip("[]")
 
 
 def is_loopback(endpoint: str) -> bool:

@@ -164,7 +164,7 @@ class _ZenohBroadcast(Broadcast):
     @property
     def matched(self) -> bool:
         try:
-            return self._publisher.matching_status.matching
+            return _matching(self._publisher)
         except Exception:  # noqa: BLE001 - a closing session matches nothing
             return False
 
@@ -255,7 +255,8 @@ class ZenohBus(Bus):
 
     @classmethod
     def open(cls, *, timeout: float = 10.0, **options) -> ZenohBus:
-        """Open a bus from :func:`~dmpc.bus.session.session_config` keyword arguments."""
+        """Open a bus from :func:`~dmpc.bus.session.session_config` keyword arguments, waiting at most
+        ``timeout`` seconds for the session."""
         return cls(session_config(**options), open_timeout=timeout)
 
     @property
@@ -300,7 +301,8 @@ class ZenohBus(Bus):
             raise BusError(f"publish on {key!r} failed: {exc}") from exc
 
     def broadcast(self, key: str, encoding: str) -> Broadcast:
-        """A publisher for observers: congestion control DROP, best-effort reliability, low priority."""
+        """A publisher for observers on ``key``, with payloads of ``encoding`` (a MIME type): congestion
+        control DROP, best-effort reliability, low priority."""
         with self._lock:
             self._check_open()
             return _ZenohBroadcast(self._session.declare_publisher(
@@ -324,7 +326,7 @@ class ZenohBus(Bus):
         """
         publisher = self._publisher(key)
         deadline = time.monotonic() + timeout
-        while not publisher.matching_status.matching:
+        while not _matching(publisher):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.002)
@@ -392,10 +394,11 @@ class ZenohBus(Bus):
                 entry = self._declare_hot(key, expr)
             handlers = entry.handlers
         else:
-            handlers = self._queued.get(key)
-            if handlers is None:
-                handlers = self._queued[key] = _Handlers()
-                self._declare(lambda: self._session.declare_subscriber(expr, self._on_sample(handlers)))
+            queued = self._queued.get(key)
+            if queued is None:
+                queued = self._queued[key] = _Handlers()
+                self._declare(lambda: self._session.declare_subscriber(expr, self._on_sample(queued)))
+            handlers = queued
         handlers.append(handler)
         if key not in self._subscribed:
             self._subscribed[key] = handlers
@@ -458,10 +461,10 @@ class ZenohBus(Bus):
         alive when ``run`` reaches it, then every change.
         """
         expr = _key_expr(pattern)
-        watch = self._watches.get(pattern)
-        if watch is not None:
-            slot = watch.add(handler, primed=False)
-            self._enqueue(lambda _key, _value: watch.prime(slot), pattern, None)
+        existing = self._watches.get(pattern)
+        if existing is not None:
+            slot = existing.add(handler, primed=False)
+            self._enqueue(lambda _key, _value: existing.prime(slot), pattern, None)
             return
         watch = self._watches[pattern] = _Watch()
         watch.add(handler, primed=True)  # Zenoh's history brings it the tokens alive now
@@ -626,6 +629,12 @@ def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback:
     # the interpreter joins at exit before atexit hooks run: a bus left open then hangs the
     # process. Our callbacks only enqueue, so they can run on Zenoh's own thread.
     return zenoh.handlers.Callback(fn, indirect=False)
+
+
+def _matching(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches the publisher's key."""
+    # zenoh's stub types the property as bool; it is a MatchingStatus, which says so in .matching
+    return bool(publisher.matching_status.matching)  # type: ignore[attr-defined]
 
 
 def _wake_key(key: str) -> str:

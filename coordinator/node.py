@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from functools import partial
 from typing import Protocol
 
 from dmpc.bus import keys
@@ -63,13 +64,31 @@ class MessageCount:
         self.counts: dict[str, dict[str, int]] = {}
 
     def add(self, sender: str, kind: str, size: int) -> None:
+        """Count one answer.
+
+        Parameters
+        ----------
+        sender : str
+            The agent's name (the message's ``sender``).
+        kind : {"plan", "kept"}
+            A plan message or a kept notice.
+        size : int
+            Its payload's length in bytes.
+        """
         entry = self.counts.setdefault(sender, {"plan": 0, "kept": 0, "bytes": 0})
         entry[kind] += 1
         entry["bytes"] += size
 
     def summary(self, names: list[str]) -> dict:
         """``summary.json``'s ``messages``: totals and, per agent, ``plan_messages``,
-        ``kept_notices`` and ``bytes``."""
+        ``kept_notices`` and ``bytes``.
+
+        Parameters
+        ----------
+        names : list of str
+            The agents' names, in the scenario's order: ``per_agent`` has one entry for each
+            (zeros for one that sent nothing), and only these count in the totals.
+        """
         per = {name: {"plan_messages": self.counts.get(name, {}).get("plan", 0),
                       "kept_notices": self.counts.get(name, {}).get("kept", 0),
                       "bytes": self.counts.get(name, {}).get("bytes", 0)} for name in names}
@@ -83,7 +102,15 @@ class RunObserver(Protocol):
     step and of the end; it must never block the coordinator."""
 
     def step(self, record: StepRecord, node: "CoordinatorNode") -> None:
-        """A step completed; ``node`` tells who is alive, ready, and what was dropped."""
+        """A step completed with ``record``; ``node`` tells who is alive, ready, and what was dropped.
+
+        Parameters
+        ----------
+        record : StepRecord
+            The completed step's record, as the run folder got it.
+        node : CoordinatorNode
+            The coordinator node that completed it.
+        """
         ...
 
     def summary(self, summary: dict) -> None:
@@ -377,7 +404,7 @@ class CoordinatorNode:
                 if self.mode == "realtime" and rel.round == 0 and rel.k > 0:
                     wait = self._t0 + rel.k * self.dt - self.bus.now()
                     if wait > 0:
-                        self.bus.call_later(wait, lambda rest=actions[n:]: self._dispatch(rest))
+                        self.bus.call_later(wait, partial(self._dispatch, actions[n:]))
                         return
                 if rel.round == 0:
                     self._open_step(rel.k)  # the step's time includes sending its release
@@ -386,14 +413,17 @@ class CoordinatorNode:
                 if action.round == 0 and self._opened_step != action.k:
                     self._open_step(action.k)  # no release (every agent lost)
                 if self.deadline is not None:
-                    k, r = action.k, action.round
-                    self.bus.call_later(self.deadline, lambda k=k, r=r: self._carry_out(self.coordinator.on_deadline(k, r)))
+                    self.bus.call_later(self.deadline, partial(self._deadline_passed, action.k, action.round))
             elif isinstance(action, ApplyInputs):
+                assert self.link is not None  # a coordinator applies its inputs through a link only to a plant outside
                 self.link.apply(action.k, action.u)
             elif isinstance(action, PlanRefused):
                 self._log_refusal(action)
             elif isinstance(action, RunFinished):
                 self._stop(action.reason)
+
+    def _deadline_passed(self, k: int, r: int) -> None:
+        self._carry_out(self.coordinator.on_deadline(k, r))
 
     def _open_step(self, k: int) -> None:
         self.coordinator.step_opened()
@@ -414,12 +444,27 @@ class CoordinatorNode:
             self.bus.publish(keys.control(self.run_id), self._stop_payload)
 
     def fail(self, reason: str) -> None:
-        """Abort the run: tell every agent and stop."""
+        """Abort the run: tell every agent and stop.
+
+        Parameters
+        ----------
+        reason : str
+            Why the run failed: kept as ``failure`` and sent in the ``Stop`` as ``failed: <reason>``
+            (cut to the message's longest reason). Nothing happens once the run is over.
+        """
         if not self.finished:
             self.failure = reason
             self._stop(f"failed: {reason}")
 
     def abort(self, reason: str = "aborted") -> None:
+        """End the run early: tell every agent and stop.
+
+        Parameters
+        ----------
+        reason : str
+            Kept as ``failure`` and sent as the ``Stop``'s reason as it is (cut to the message's
+            longest reason). Nothing happens once the run is over.
+        """
         if not self.finished:
             self.failure = reason
             self._stop(reason)

@@ -10,7 +10,7 @@ from dmpc.bus.interface import Bus
 from dmpc.coordinator.barrier import Coordinator
 from dmpc.coordinator.node import CoordinatorNode, RunObserver
 from dmpc.core.steps import StepRecord
-from dmpc.methods import terminal_policy
+from dmpc.methods import method_spec, terminal_policy
 from dmpc.methods.policy import BoxPolicy
 from dmpc.plant.dynamics import Plant
 from dmpc.plant.models import make_plant
@@ -42,6 +42,24 @@ def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callabl
 
     The one place that builds the coordinator from a prepared run: ``dmpc coordinator``,
     ``dmpc plant`` and ``dmpc simulate`` (:mod:`dmpc.runtime.inprocess`) all do it here.
+
+    Parameters
+    ----------
+    prepared : Prepared
+        The prepared run: its system, design, method, protocol options, setpoints and timing.
+    bus : Bus
+        The bus the node runs on; its clock times the coordinator.
+    run_id : str
+        The run id every message of the run carries.
+    on_step : callable StepRecord -> None
+        Called for every completed step (the run folder appends it).
+    plant : Plant or None
+        The simulated plant the coordinator steps; None for a plant outside.
+    telemetry : RunObserver, optional
+        Gets every completed step and the end, for observers.
+    plant_timeout : float, optional
+        With a plant outside: the most seconds to wait for each step's state; None with the
+        simulated plant.
     """
     policy = terminal_policy(prepared.method, prepared.system, prepared.design)
     tracker = None
@@ -50,7 +68,9 @@ def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callabl
         tracker = Tracker(prepared.system, prepared.design.terminal, policy.closed_loop,
                           prepared.design.gains.K_global(), prepared.setpoints, prepared.setpoint_margin)
     coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id, policy=policy,
-                              clock=bus.now, tracker=tracker, triggered=prepared.trigger.event)
+                              clock=bus.now, tracker=tracker, triggered=prepared.trigger.event,
+                              cooperative=method_spec(prepared.method).cooperative,
+                              cooperative_step=prepared.protocol.cooperative_step)
     return CoordinatorNode(bus, coordinator, prepared.digest, on_step, mode=prepared.mode, dt=prepared.dt,
                            deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry,
                            plant_timeout=plant_timeout)
@@ -65,6 +85,34 @@ def run_coordinator(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id:
     the agents, and each step's state for at most ``plant_timeout`` seconds. ``telemetry`` (the live
     view's, :func:`dmpc.watch.telemetry.open_telemetry`) sees every completed step and the end.
     Ctrl-C (or SIGTERM) stops the agents and keeps every completed step in the run folder.
+
+    Parameters
+    ----------
+    prepared : Prepared
+        The prepared run.
+    recorder : RunRecorder
+        The run folder's writer: it gets every completed step, then the summary.
+    bus : Bus
+        The bus the coordinator runs on (its session, until the agents have left).
+    run_id : str
+        The run id every message of the run carries.
+    startup_timeout : float
+        Seconds to wait for every agent's ``Ready`` (and a plant outside's x(0)); past them the
+        run fails with what was missing.
+    runtime : str
+        How the run is hosted, the summary's ``runtime`` (``"multi-process"`` for ``dmpc run``).
+    external_plant : bool
+        The plant is outside this process.
+    plant_timeout : float
+        See above (used only with ``external_plant``).
+    telemetry : RunObserver, optional
+        See above.
+
+    Returns
+    -------
+    CoordinatorOutcome
+        The exit code, the line that says how the run ended, and the summary written (None if
+        none could be).
     """
     outside = {"plant": {"model": "outside"}} if external_plant else {}  # what the summary says of the plant
     node = coordinator_node(prepared, bus, run_id, recorder.on_step, None if external_plant else make_plant(prepared),
@@ -82,9 +130,9 @@ def run_coordinator(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id:
     except RecordWriteError as exc:
         reason = f"{node.who}: {exc}; the run stopped after {recorder.steps} steps, which are kept in {STEP_LOG}"
         node.fail(reason)
-        summary = recorder.complete_if_possible(**outside, runtime=runtime, failure=reason, **node.counts())
-        finish(bus, node, summary, telemetry, recorder)
-        return CoordinatorOutcome(EXIT_FAILED, reason, summary)
+        kept = recorder.complete_if_possible(**outside, runtime=runtime, failure=reason, **node.counts())
+        finish(bus, node, kept, telemetry, recorder)
+        return CoordinatorOutcome(EXIT_FAILED, reason, kept)
     except KeyboardInterrupt:
         node.abort("aborted")
         summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", **node.counts())
@@ -106,6 +154,19 @@ def finish(bus: Bus, node: CoordinatorNode, summary: dict | None, telemetry: Run
 
     In a run folder made by ``dmpc run`` (it has ``logs/``), the agents' reports are merged into
     the summary once they have left, so the summary has them even if the launcher is gone.
+
+    Parameters
+    ----------
+    bus : Bus
+        The coordinator's bus, run until the agents have left (:func:`linger`).
+    node : CoordinatorNode
+        The coordinator node, whose run is over (its ``Stop`` sent).
+    summary : dict or None
+        The summary written (``summary.json``'s content), for ``telemetry``; None if none was.
+    telemetry : RunObserver or None
+        Told of the summary, then closed.
+    recorder : RunRecorder, optional
+        The run folder's writer, whose folder gets the agents' reports merged into its summary.
     """
     if telemetry is not None and summary is not None:
         telemetry.summary(summary)
@@ -129,6 +190,15 @@ def linger(bus: Bus, node: CoordinatorNode, timeout: float = LINGER) -> None:
     reached every agent (through a router they travel different paths), and an agent would
     then report a lost coordinator instead of a finished run. Stop is repeated every
     ``STOP_REPEAT`` s meanwhile, in case a copy was lost (injected loss drops it too).
+
+    Parameters
+    ----------
+    bus : Bus
+        The coordinator's bus, run meanwhile.
+    node : CoordinatorNode
+        The coordinator node whose run is over: it says who is still present and repeats the ``Stop``.
+    timeout : float
+        The most seconds to wait (bus clock).
     """
     end = bus.now() + timeout
     try:

@@ -58,7 +58,7 @@ def paper_model() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     M = len(NAMES)
     A, B = np.zeros((N_I * M, N_I * M)), np.zeros((N_I * M, M_I * M))
     at = {name: i for i, name in enumerate(NAMES)}
-    for name, i in at.items():
+    for i in at.values():
         A[N_I * i:N_I * (i + 1), N_I * i:N_I * (i + 1)] = A_II
         B[N_I * i:N_I * (i + 1), M_I * i:M_I * (i + 1)] = B_II
     for target, source in COUPLINGS:
@@ -91,7 +91,7 @@ def read_message(payload: bytes, run: str, kind: str) -> dict:
     """The msgpack map in ``payload`` if it is a ``kind`` message of run ``run`` from the coordinator."""
     try:
         body = msgpack.unpackb(payload, raw=False)
-    except Exception as exc:  # msgpack raises several unrelated types on garbage
+    except Exception as exc:  # noqa: BLE001 - msgpack raises several unrelated types on garbage
         raise Dropped(f"not msgpack ({type(exc).__name__})") from None
     if not isinstance(body, dict):
         raise Dropped("not a map")

@@ -31,7 +31,8 @@ def uniform_sequence(bound: np.ndarray, steps: int, seed: int) -> np.ndarray:
 
 
 def gaussian_sequence(std: np.ndarray, steps: int, seed: int) -> np.ndarray:
-    """w(k) normal with zero mean and standard deviations ``std`` (shape (n,)); shape (steps, n)."""
+    """w(k) normal with zero mean and standard deviations ``std`` (shape (n,)), drawn from ``seed``;
+    shape (steps, n)."""
     std = np.asarray(std, dtype=float)
     return np.random.default_rng(seed).standard_normal(size=(steps, std.size)) * std
 

@@ -10,6 +10,7 @@ missing subsystems, their sources' liveliness and the last reason a state of the
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
@@ -78,7 +79,7 @@ class PlantLink:
         self._inputs = encode(Inputs(run=self.run_id, k=k, u=parts))
         self.inbox.expect(k + 1)
         self._send()
-        self._deadline = self.bus.call_later(self.timeout, lambda k=k: self._late(k + 1))
+        self._deadline = self.bus.call_later(self.timeout, partial(self._late, k + 1))
 
     def stop(self) -> None:
         """No more repeats or deadlines (the run is over)."""
@@ -119,7 +120,7 @@ class PlantLink:
             return
         k = self.inbox.k
         x = self.inbox.take(msg)
-        if x is not None and not self._stopped:
+        if x is not None and k is not None and not self._stopped:  # k: the awaited step, a state was taken
             self._cancel()
             self.on_state(k, x)
 
@@ -129,7 +130,7 @@ class PlantLink:
         self.rejects(source, why)
 
     def on_alive(self, role: str, alive: bool) -> None:
-        """The liveliness token of ``role`` appeared or went (the host watches every token)."""
+        """The liveliness token of ``role`` appeared (``alive``) or went (the host watches every token)."""
         if role in self._sources:
             self.alive[role] = alive
 
@@ -140,7 +141,8 @@ class PlantLink:
         self.on_failure(self.describe_missing(k, f"within {self.timeout:g} s"))
 
     def describe_missing(self, k: int, when: str) -> str:
-        """Why x(k) is not complete: the missing subsystems, their sources and what was wrong."""
+        """Why x(k) is not complete ``when`` (e.g. "within 2 s"): the missing subsystems, their
+        sources and what was wrong."""
         missing = self.inbox.missing()
         shown = ", ".join(missing[:MAX_NAMED]) + (f" and {len(missing) - MAX_NAMED} more" if len(missing) > MAX_NAMED
                                                   else "")

@@ -76,7 +76,7 @@ class FunctionPlant(MatrixPlant):
         self.name = name or getattr(function, "__qualname__", repr(function))
 
     def step(self, u: np.ndarray) -> np.ndarray:
-        """Call the function for step k and return x(k+1); PlantModelError if it fails."""
+        """Call the function for step k with the inputs u (m,) and return x(k+1); PlantModelError if it fails."""
         where = f"the plant function {self.name} failed at step k = {self.k}"
         try:
             out = self.function(self.x.copy(), np.array(u, dtype=float), self.k)
@@ -92,11 +92,12 @@ class FunctionPlant(MatrixPlant):
 
 
 def make_plant(prepared: Prepared, x0: np.ndarray | None = None) -> Plant:
-    """The plant a run steps: its model (nominal, exact or the user's function) and disturbance."""
+    """The plant of the ``prepared`` run: its model (nominal, exact or the user's function) and disturbance,
+    starting from x0 (n,) (the scenario's by default)."""
     setup, system = prepared.plant, prepared.system
     w = None if setup.disturbance is None else DisturbanceSequence(setup.disturbance)
     if setup.function is not None:
         return FunctionPlant(system, setup.function, setup.function_name, x0=x0, disturbance=w)
-    if setup.A is not None:
+    if setup.A is not None and setup.B is not None:  # given together, for the exact model
         return MatrixPlant(system, setup.A, setup.B, x0=x0, disturbance=w)
     return Plant(system, x0, disturbance=w)

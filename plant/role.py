@@ -15,6 +15,7 @@ The rules it follows are the ones any outside plant must follow:
 from __future__ import annotations
 
 import logging
+from typing import TypeVar
 
 import numpy as np
 
@@ -24,6 +25,8 @@ from dmpc.bus.interface import Bus, Timer
 from dmpc.bus.messages import COORDINATOR, Inputs, State, Stop
 from dmpc.core.system import CoupledSystem
 from dmpc.security.rejects import Rejections
+
+_FromCoordinator = TypeVar("_FromCoordinator", Inputs, Stop)  # what the coordinator sends the plant
 
 log = logging.getLogger("dmpc.plant")
 REPEAT = 0.5
@@ -100,7 +103,7 @@ class PlantRole:
             msg = State(run=self.run_id, k=self.k, sender=role, x={name: by_name[name]})
             self.bus.publish(keys.state(self.run_id, role), encode(msg))
 
-    def _decode(self, payload: bytes, expected: type):
+    def _decode(self, payload: bytes, expected: type[_FromCoordinator]) -> _FromCoordinator | None:
         try:
             msg = decode(payload)
         except DecodeError as exc:

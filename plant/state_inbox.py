@@ -68,7 +68,7 @@ class StateInbox:
         return None
 
     def take(self, msg: State) -> np.ndarray | None:
-        """Take a message :meth:`problem` found usable; returns x(k), shape (n,), once every
+        """Take a message ``msg`` that :meth:`problem` found usable; returns x(k), shape (n,), once every
         subsystem's state is in (each subsystem's first entry counts)."""
         for name, x in msg.x.items():
             if name in self._parts:
@@ -78,6 +78,7 @@ class StateInbox:
         if len(self._parts) < len(self.names):
             return None
         x = np.concatenate([self._parts[name] for name in self.names])
+        assert self.k is not None  # a state taken is of the awaited step (problem() is None)
         self.done = self.k
         self.k = None
         self._parts = {}

@@ -107,7 +107,7 @@ def ping_pong(bus: ZenohBus, count: int, size: int = 64) -> list[float]:
         payload = i.to_bytes(4, "little") + bytes(size - 4)
         start = bus.now()
         bus.publish(PING, payload)
-        if not bus.run(lambda: payload in answers, timeout=5):
+        if not bus.run(lambda payload=payload: payload in answers, timeout=5):
             raise TimeoutError(f"PONG {i} lost")
         rtts.append(bus.now() - start)
     return rtts

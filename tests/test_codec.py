@@ -16,9 +16,10 @@ from dmpc.bus.messages import PlanMessage, Ready, Release, Setpoint, SetpointAns
 names = st.text(alphabet="abcdefghijklmnopqrstuvwxyz0123456789_-", min_size=1, max_size=12)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 counts = st.integers(min_value=0, max_value=10**9)
+vector_lengths = st.integers(1, 6)
 
 
-def vectors(n=st.integers(1, 6)):
+def vectors(n=vector_lengths):
     return n.flatmap(lambda k: arrays(np.float64, (k,), elements=finite))
 
 

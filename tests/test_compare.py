@@ -8,6 +8,7 @@ import pytest
 
 from dmpc.evaluation.compare import steps_to
 from dmpc.evaluation.roa import region_of_attraction, roa_markdown, sample_states
+from dmpc.methods import METHOD_NAMES
 from dmpc.scenario import load_scenario
 from tests.helpers.cli import call, one_error_line
 from tests.helpers.reference import PAPER
@@ -201,24 +202,67 @@ def test_run_centralized_runs_in_this_process(tmp_path, monkeypatch, capsys):
 SETPOINT = ["--set", 'setpoints=[{at: 0, subsystem: "1", x: [1.0, null]}]']
 
 
-def test_compare_with_setpoints_runs_the_methods_that_track_them(tmp_path, monkeypatch, capsys):
+UNTRACKED = ("fixed-box", "ellipsoid", "ellipsoid-adaptive")
+"""The methods that do not track setpoints (they would drive the states to the origin)."""
+
+
+def test_compare_with_setpoints_runs_the_methods_that_track_them_and_names_the_others(tmp_path, monkeypatch, capsys):
     out = tmp_path / "cmp"
     code, stdout, _ = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(out), "--steps", "30",
                            *SETPOINT, "--quiet")
     assert code == 0
     data = json.loads((out / "comparison.json").read_text())
-    assert list(data["methods"]) == ["tv-box", "tv-box-opt"]  # the others would drive the states to the origin
-    entry = data["methods"]["tv-box"]
-    target = np.load(out / "tv-box" / "trajectory.npz")["target"][-1]
-    assert target[0] == pytest.approx(1.0) and entry["steps_to_1e-3"] is not None  # measured from the target
-    assert "||x(k) - x_s||_inf" in stdout
+    assert list(data["methods"]) == ["tv-box", "tv-box-opt", "tv-box-coop", "centralized"]
+    assert list(data["skipped"]) == list(UNTRACKED) and "triggers" not in data
+    for name in UNTRACKED:
+        why = data["skipped"][name]
+        assert why.startswith(f"method '{name}' does not track setpoints (methods that do: tv-box, tv-box-opt, "
+                              "tv-box-coop, centralized)"), why
+        assert f"not run: {name}: {why}" in stdout
+        assert not (out / name).exists()
+    for name in ("tv-box", "centralized"):  # the centralised baseline tracks the same targets
+        entry = data["methods"][name]
+        assert set(entry) == ENTRY_KEYS | {"tracking_cost"}
+        arrays = np.load(out / name / "trajectory.npz")
+        assert arrays["target"][-1][0] == pytest.approx(1.0) and entry["steps_to_1e-3"] is not None  # from the target
+        assert entry["verdict"] == "ok" and entry["feasible"] and entry["fallbacks"] == 0
+        dx, du = arrays["x"][:30] - arrays["reference"], arrays["u"] - arrays["reference_u"]
+        by_hand = sum(dx[k] @ dx[k] + 0.01 * du[k] @ du[k] for k in range(30))  # Q_i = I, R_i = 0.01
+        assert entry["tracking_cost"] == pytest.approx(by_hand, rel=1e-12)
+    central, box = (data["methods"][m] for m in ("centralized", "tv-box"))
+    assert central["closed_loop_cost"] <= box["closed_loop_cost"] * (1 + 1e-6)
+    assert central["tracking_cost"] <= box["tracking_cost"] * (1 + 1e-6)
+    assert "||x(k) - x_s||_inf" in stdout and "closed-loop cost tv-box / centralized = " in stdout
+    assert "tracking / central" in stdout
+    ratio = box["tracking_cost"] / central["tracking_cost"]
+    assert f"tracking cost tv-box / centralized = {ratio:.4f} (around the references)" in stdout
+
+
+def test_without_setpoints_or_triggers_nothing_is_skipped():
+    from dmpc.evaluation.compare import plan_runs
+
+    runs, skipped = plan_runs(list(METHOD_NAMES), ["always"])
+    assert runs == [(m, "always") for m in METHOD_NAMES] and skipped == {}
+
+
+def test_setpoints_and_triggers_together_skip_each_run_a_method_cannot_make():
+    from dmpc.evaluation.compare import plan_runs
+
+    runs, skipped = plan_runs(list(METHOD_NAMES), ["always", "event"], setpoints=True)
+    assert runs == [("tv-box", "always"), ("tv-box", "event"), ("tv-box-opt", "always"), ("tv-box-opt", "event"),
+                    ("tv-box-coop", "always"), ("centralized", "always")]
+    assert set(skipped) == {"tv-box-coop+event", "centralized+event"} | {
+        f"{m}{t}" for m in UNTRACKED for t in ("", "+event")}
+    assert skipped["ellipsoid+event"].startswith("method 'ellipsoid' does not track setpoints")  # the first reason
+    assert skipped["centralized+event"] == ("method 'centralized' does not work with the event trigger (methods that "
+                                            "do: tv-box, tv-box-opt)")
 
 
 def test_compare_refuses_a_method_that_does_not_track_the_scenarios_setpoints(tmp_path, monkeypatch, capsys):
     code, stdout, err = call(monkeypatch, capsys, "compare", str(PAPER), "--out", str(tmp_path / "cmp"),
                              "--methods", "tv-box", "ellipsoid", *SETPOINT, "--quiet")
     assert code == 2 and stdout == ""
-    assert "--methods: the method 'ellipsoid' does not track setpoints" in one_error_line(err)
+    assert "--methods: method 'ellipsoid' does not track setpoints (methods that do: " in one_error_line(err)
     assert not (tmp_path / "cmp").exists()
 
 
@@ -242,7 +286,8 @@ def test_compare_runs_each_method_with_each_trigger(tmp_path, monkeypatch, capsy
     assert list(data["methods"]) == ["tv-box", "tv-box+event", "ellipsoid", "centralized"]
     assert data["triggers"] == ["always", "event"]
     assert set(data["skipped"]) == {"ellipsoid+event", "centralized+event"}
-    assert "works with tv-box and tv-box-opt only" in data["skipped"]["ellipsoid+event"]
+    assert data["skipped"]["ellipsoid+event"] == ("method 'ellipsoid' does not work with the event trigger (methods "
+                                                  "that do: tv-box, tv-box-opt)")
     for name, entry in data["methods"].items():
         assert set(entry) == ENTRY_KEYS | TRIGGER_KEYS, name
         assert entry["run_dir"] == name and (out / name / "summary.json").exists()
@@ -261,7 +306,7 @@ def test_compare_runs_each_method_with_each_trigger(tmp_path, monkeypatch, capsy
     assert header.split()[-8:] == ["/", "always", "solves", "kept", "plans", "kB", "step", "ms"]
     row = next(line for line in stdout.splitlines() if line.lstrip().startswith("tv-box+event"))
     assert f" {event['solves']} " in row and f" {event['keeps']} " in row
-    assert "not run: ellipsoid+event (the event trigger works with tv-box and tv-box-opt only)" in stdout
+    assert "not run: ellipsoid+event: method 'ellipsoid' does not work with the event trigger" in stdout
     assert (out / "figures" / "fig4_cost.png").exists()
 
 
@@ -305,3 +350,17 @@ def test_the_table_of_a_comparison_with_triggers_has_the_triggers_columns():
     assert rows[0][-6:] == ["-", "40", "0", "40", "20.0", "2.00"]
     assert rows[1][-6:] == ["1.000020", "10", "30", "10", "6.5", "1.50"]
     assert len(comparison_rows({"methods": {"tv-box": base}})[0]) == 8  # without triggers: as before
+
+
+def test_the_table_of_a_comparison_with_setpoints_has_the_tracking_column():
+    from dmpc.evaluation.compare import comparison_header, comparison_legend, comparison_rows
+
+    base = {"closed_loop_cost": 100.0, "solve_time_median_s": 1e-4, "feasible": True, "fallbacks": 0,
+            "steps_to_1e-3": 12, "verdict": "ok", "failures": []}
+    data = {"methods": {"tv-box": dict(base, closed_loop_cost=90.0, tracking_cost=120.0),
+                        "centralized": dict(base, tracking_cost=100.0)}, "skipped": {}}
+    header = comparison_header(data)
+    assert header[header.index("/ central") + 1] == "tracking / central" and len(header) == 9
+    rows = comparison_rows(data)
+    assert rows[0][5:7] == ["0.9000", "1.2000"] and rows[1][5:7] == ["1.0000", "1.0000"]
+    assert "tracking / central: " in comparison_legend(data)

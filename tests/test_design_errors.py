@@ -149,7 +149,7 @@ def test_solver_warnings_go_to_the_design_logger(monkeypatch, caplog):
     original = lmi_conic.solve_lmi
 
     def warning_solve(*args, **kwargs):
-        warnings.warn("Solution may be inaccurate (injected).", UserWarning)
+        warnings.warn("Solution may be inaccurate (injected).", UserWarning, stacklevel=2)
         return original(*args, **kwargs)
 
     monkeypatch.setattr(lmi_conic, "solve_lmi", warning_solve)

@@ -9,7 +9,8 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SKIPPED = {".venv", ".git", "runs", "__pycache__", ".hypothesis", ".pytest_cache", "node_modules", "build", "dist"}
+SKIPPED = {".venv", ".git", "runs", "__pycache__", ".hypothesis", ".pytest_cache", "node_modules", "build", "dist",
+           "typecheck"}  # typecheck/: symlinks to the package's own files, for mypy
 SUFFIXES = {".py", ".md", ".yaml", ".yml"}
 REFERENCE = re.compile(r"(\w+)\.md(?:\]\([^)\s]*\))?, \"([^\"\n]+)\"")
 GONE = "ALGORITHM" + ".md"  # the file that docs/algorithm.md replaced (spelled so as not to match here)

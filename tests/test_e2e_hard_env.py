@@ -168,7 +168,7 @@ def test_free_ports_are_drawn_below_the_ephemeral_range():
 # --------------------------------------------------------------------------- crashed agents
 def _kill_at(out: Path, plan: list[tuple[str, int]]) -> None:
     for role, at in plan:
-        assert wait_for(lambda: step_lines(out) >= at, 60), f"step {at} never came"
+        assert wait_for(lambda at=at: step_lines(out) >= at, 60), f"step {at} never came"
         os.kill(json.loads((out / "processes.json").read_text())[role], signal.SIGKILL)
 
 

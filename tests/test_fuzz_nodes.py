@@ -199,7 +199,7 @@ def _unchecked_plan(payload: bytes) -> PlanMessage:
     import msgpack
 
     b = msgpack.unpackb(payload, raw=False)
-    arr = lambda d: np.frombuffer(d["data"], dtype="<f8").reshape(d["shape"])  # noqa: E731
+    arr = lambda d: np.frombuffer(d["data"], dtype="<f8").reshape(d["shape"])
     return PlanMessage(run=b["run"], k=b["k"], round=b["iteration"], sender=b["sender"], status=b["status"],
                        z=arr(b["z"]), v=arr(b["v"]), cost=b["cost"], solve_time=b["solve_time"],
                        qp_iterations=b["qp_iterations"], sent_at=b["sent_at"])

@@ -148,7 +148,7 @@ def test_plans_outside_U_i_are_refused_counted_and_fall_back(tmp_path, monkeypat
     """Agent 2 sends v(k) = 40 (U_2 = [-2.5, 2.5]) at steps 3 and 7: the plant applies its
     fallback instead, inside U_2, counts the refusals in summary.json, and the run completes."""
     prepared = prepare(load_scenario("scenarios/paper.yaml"))
-    tamper = lambda bus, name: OutOfBoundsPlans(bus, {3, 7}, 40.0) if name == "2" else bus  # noqa: E731
+    tamper = lambda bus, name: OutOfBoundsPlans(bus, {3, 7}, 40.0) if name == "2" else bus
     monkeypatch.setattr(inprocess, "simulate",
                         lambda prepared, on_step: simulate(prepared, on_step, bus_for=tamper))
     with RunRecorder(tmp_path / "run", prepared, show_progress=False) as recorder:

@@ -18,6 +18,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 NOT_A_REASON = ("noqa", "type:", "pragma", "fmt:", "isort:")
 
@@ -186,6 +188,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("dmpc.offline", "dmpc.bus"),  # offline design, transport
     ("dmpc.methods", "dmpc.tracking", "dmpc.security"),  # the methods' terminal sets; setpoint targets and the
     # reference governor; TLS, access control, checks of what arrives
+    ("dmpc.cooperative",),  # the cooperative method's iterate and agent QPs (around setpoint targets)
     ("dmpc.scenario",),  # scenario files
     ("dmpc.prepared",),  # a prepared run: what every role is built from
     ("dmpc.records",),  # the run folder
@@ -201,8 +204,15 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 """The layers, lowest first: a node imports only nodes of lower layers."""
 
 
-def test_the_walker_sees_the_packages_and_their_imports():
-    packages, imports = import_graph()
+@pytest.fixture(scope="module")
+def tree() -> tuple[dict[str, Path], list[Import]]:
+    """The package's folders and the imports of its modules, each module parsed once for the
+    tests of the tree as it is (none of them changes what it is given)."""
+    return import_graph()
+
+
+def test_the_walker_sees_the_packages_and_their_imports(tree):
+    packages, imports = tree
     assert packages["dmpc.agents"] == ROOT / "agents" and packages["dmpc.offline"] == ROOT / "dmpc" / "offline"
     assert packages["dmpc.coordinator"] == ROOT / "coordinator"
     seen = {(node_of(i.module, packages), node_of(i.target, packages)) for i in imports}
@@ -220,19 +230,19 @@ def test_every_package_has_one_layer():
     assert sorted(placed) == sorted(packages), "packages without a layer, or layers without a package"
 
 
-def test_no_package_imports_its_layer_or_a_higher_one():
-    packages, imports = import_graph()
+def test_no_package_imports_its_layer_or_a_higher_one(tree):
+    packages, imports = tree
     found = upward(packages, imports, LAYERS)
     assert not found, "imports against the layers:\n" + "\n".join(found)
 
 
-def test_no_import_goes_round_in_a_circle():
-    packages, imports = import_graph()
+def test_no_import_goes_round_in_a_circle(tree):
+    packages, imports = tree
     assert cycles(packages, imports) == []
 
 
-def test_no_two_folders_import_each_other():
-    packages, imports = import_graph()
+def test_no_two_folders_import_each_other(tree):
+    packages, imports = tree
     ties = two_way_ties(packages, imports)
     assert not ties, "folders that import each other:\n" + "\n".join(ties)
 
@@ -242,8 +252,8 @@ def test_the_top_of_dmpc_holds_only_the_package_itself():
     assert sorted(path.name for path in (ROOT / "dmpc").glob("*.py")) == ["__init__.py"]
 
 
-def test_imports_of_dmpc_inside_functions_say_why():
-    _, imports = import_graph()
+def test_imports_of_dmpc_inside_functions_say_why(tree):
+    _, imports = tree
     missing = unexplained(imports)
     assert not missing, "\n".join(missing)
 

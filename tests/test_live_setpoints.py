@@ -116,7 +116,7 @@ def test_a_value_outside_a_box_of_states_is_refused_in_the_scenarios_words():
 def test_a_method_without_setpoints_a_finished_run_and_a_decided_last_step_refuse():
     fixed = build_run(prepared_paper(steps=5, **{"options.method": "fixed-box"}), lambda rec: None, run_id=RUN)
     assert fixed.coordinator.coordinator.on_setpoint(request()).reason == (
-        "this run's method does not track setpoints (only tv-box and tv-box-opt do)")
+        "method 'fixed-box' does not track setpoints (methods that do: tv-box, tv-box-opt, tv-box-coop, centralized)")
     run = build_run(prepared_paper(steps=5), lambda rec: None, run_id=RUN)
     run_until(run, 4)  # the last step: its successor's target is decided at its end, and no step uses it
     assert run.coordinator.coordinator.on_setpoint(request()).reason == (

@@ -14,10 +14,20 @@ import pytest
 from dmpc.coordinator.barrier import Coordinator
 from dmpc.core.central_qp import CentralQP
 from dmpc.evaluation.compare import compare
-from dmpc.methods import METHOD_NAMES, method_spec, terminal_policy
+from dmpc.methods import (
+    CAPABILITIES,
+    METHOD_NAMES,
+    METHODS,
+    CapabilityError,
+    lacks,
+    method_spec,
+    methods_with,
+    require,
+    terminal_policy,
+)
 from dmpc.methods.inscribed import inscribed_rows, polytope_vertices, unit_ball_polytope
 from dmpc.methods.levels import containment, dual_norms, fit_levels, level_increments, static_level
-from dmpc.methods.policy import EllipsoidPolicy
+from dmpc.methods.policy import BoxPolicy, EllipsoidPolicy
 from dmpc.methods.terminal_rows import InscribedTerminal
 from dmpc.plant.dynamics import Plant
 from dmpc.prepared import design_digest
@@ -333,10 +343,75 @@ def test_run_bundle_carries_the_method(tmp_path):
 
 
 def test_centralized_has_no_terminal_policy(paper):
-    with pytest.raises(ValueError, match="no terminal policy"):
+    with pytest.raises(CapabilityError, match="method 'centralized' runs no agents .*: it has no terminal policy"):
         terminal_policy("centralized", paper.system, paper.design)
     with pytest.raises(ValueError, match="unknown method"):
         terminal_policy("box", paper.system, paper.design)
+
+
+# --------------------------------------------------------------------------- what each method can do
+CAN = {  # distributed, tracks setpoints, supports the event trigger, cooperative
+    "tv-box": (True, True, True, False),
+    "tv-box-opt": (True, True, True, False),
+    "tv-box-coop": (True, True, False, True),
+    "fixed-box": (True, False, False, False),
+    "ellipsoid": (True, False, False, False),
+    "ellipsoid-adaptive": (True, False, False, False),
+    "centralized": (False, True, False, False),
+}
+
+
+def test_each_spec_records_what_its_method_can_do():
+    assert tuple(CAN) == METHOD_NAMES == tuple(METHODS)
+    for name, flags in CAN.items():
+        spec = method_spec(name)
+        assert tuple(getattr(spec, c) for c in CAPABILITIES) == flags, name
+        for capability, has in zip(CAPABILITIES, flags):
+            assert (lacks(name, capability) is None) == has == (name in methods_with(capability)), (name, capability)
+    assert methods_with("tracks_setpoints") == ("tv-box", "tv-box-opt", "tv-box-coop", "centralized")
+    assert methods_with("supports_trigger") == ("tv-box", "tv-box-opt")
+
+
+def test_a_capability_error_names_the_method_and_the_capability():
+    error = lacks("ellipsoid", "tracks_setpoints")
+    assert isinstance(error, CapabilityError) and isinstance(error, ValueError)
+    assert (error.method, error.capability) == ("ellipsoid", "tracks_setpoints")
+    assert str(error) == ("method 'ellipsoid' does not track setpoints (methods that do: tv-box, tv-box-opt, "
+                          "tv-box-coop, centralized)")
+    assert str(lacks("tv-box-coop", "supports_trigger", "a kept plan is not an iterate")) == (
+        "method 'tv-box-coop' does not work with the event trigger (methods that do: tv-box, tv-box-opt): "
+        "a kept plan is not an iterate")
+    assert str(lacks("tv-box", "cooperative")) == "method 'tv-box' is not cooperative (methods that do: tv-box-coop)"
+    assert "method 'centralized' runs no agents" in str(lacks(method_spec("centralized"), "distributed"))
+    assert require("centralized", "tracks_setpoints") is method_spec("centralized")
+    with pytest.raises(CapabilityError, match="method 'fixed-box' does not track setpoints"):
+        require("fixed-box", "tracks_setpoints")
+    with pytest.raises(ValueError, match="unknown method 'boxes'"):
+        lacks("boxes", "distributed")
+    with pytest.raises(ValueError, match="unknown capability 'fast'"):
+        lacks("tv-box", "fast")  # type: ignore[arg-type]  # a capability that does not exist
+
+
+@pytest.mark.parametrize("name, kind, moving, optimised", [
+    ("tv-box", BoxPolicy, True, False), ("tv-box-opt", BoxPolicy, True, True), ("tv-box-coop", BoxPolicy, True, False),
+    ("fixed-box", BoxPolicy, False, False), ("ellipsoid", EllipsoidPolicy, False, False),
+    ("ellipsoid-adaptive", EllipsoidPolicy, True, False),
+])
+def test_the_terminal_policy_is_built_from_the_spec(paper, name, kind, moving, optimised):
+    policy = terminal_policy(name, paper.system, paper.design)
+    assert type(policy) is kind and policy.name == name
+    if kind is BoxPolicy:
+        assert policy.time_varying == moving and (policy._optimizer is not None) == optimised
+    else:
+        assert policy.adaptive == moving
+
+
+def test_the_core_holds_no_lists_of_method_names():
+    import dmpc.core.steps as steps
+
+    lists = [name for name, value in vars(steps).items()
+             if isinstance(value, tuple) and value and set(value) <= set(METHOD_NAMES) and name != "METHOD_NAMES"]
+    assert lists == []
 
 
 def test_ellipsoid_policy_polygon_sides_are_configurable(paper):
@@ -358,5 +433,5 @@ def test_method_names_defaults_and_the_scenario_agree():
     assert get_args(fields["mode"].annotation) == MODES and get_args(fields["coupling"].annotation) == COUPLINGS
     options = ProtocolOptions(steps=5, rounds=3, tolerance=1e-6, initial_rounds=7, initial_tolerance=1e-8)
     assert options.to_json() == {"steps": 5, "iterations": 3, "tolerance": 1e-6, "initial_iterations": 7,
-                                 "initial_tolerance": 1e-8}
+                                 "initial_tolerance": 1e-8, "cooperative_step": "line"}
     assert ProtocolOptions.from_json(options.to_json()) == options

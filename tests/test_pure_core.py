@@ -33,19 +33,26 @@ from tests.test_layering import modules_of, package_dirs
 ROOT = Path(__file__).resolve().parents[1]
 
 CORE_PACKAGES = {"dmpc.core": ROOT / "dmpc" / "core", "dmpc.offline": ROOT / "dmpc" / "offline",
-                 "dmpc.methods": ROOT / "dmpc" / "methods", "dmpc.tracking": ROOT / "dmpc" / "tracking"}
+                 "dmpc.methods": ROOT / "dmpc" / "methods", "dmpc.tracking": ROOT / "dmpc" / "tracking",
+                 "dmpc.cooperative": ROOT / "dmpc" / "cooperative"}
 """Every module of these packages is core: the model, its sets, projections, the discretisation, the
 QPs and their statuses, the trajectories, the protocol options and the record of one step
 (dmpc.core), the offline design and its record (dmpc.offline), the methods' terminal policies,
-the setpoint targets and the reference governor (dmpc.tracking)."""
+the setpoint targets and the reference governor (dmpc.tracking), the cooperative iterate and the
+agents' cooperative QPs (dmpc.cooperative)."""
 CORE_MODULES = {
     "dmpc.agents": ROOT / "agents" / "__init__.py",
     "dmpc.agents.local_qp": ROOT / "agents" / "local_qp.py",
     "dmpc.agents.controller": ROOT / "agents" / "controller.py",
     "dmpc.agents.trigger": ROOT / "agents" / "trigger.py",  # keep the shifted plan or solve
+    "dmpc.agents.cooperative": ROOT / "agents" / "cooperative.py",  # a cooperative agent's proposal
     "dmpc.plant": ROOT / "plant" / "__init__.py",
     "dmpc.coordinator": ROOT / "coordinator" / "__init__.py",
     "dmpc.coordinator.barrier": ROOT / "coordinator" / "barrier.py",  # the coordinator's state machine
+    # ... and its parts
+    **{f"dmpc.coordinator.{part}": ROOT / "coordinator" / f"{part}.py" for part in (
+        "actions", "candidates", "combiner", "cooperative_rounds", "guard", "open_step", "refusals", "round_barrier",
+        "setpoint_intake", "step_close")},
     "dmpc.plant.dynamics": ROOT / "plant" / "dynamics.py",
     "dmpc.plant.disturbance": ROOT / "plant" / "disturbance.py",
     "dmpc.plant.state_inbox": ROOT / "plant" / "state_inbox.py",  # the coordinator's checks of a state

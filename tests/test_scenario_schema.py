@@ -293,7 +293,7 @@ finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
 @st.composite
 def _subsystem(draw, name: str) -> dict:
     n, m = draw(st.integers(1, 3)), draw(st.integers(1, 2))
-    mat = lambda r, c: draw(st.lists(st.lists(finite, min_size=c, max_size=c), min_size=r, max_size=r))  # noqa: E731
+    mat = lambda r, c: draw(st.lists(st.lists(finite, min_size=c, max_size=c), min_size=r, max_size=r))
     lower = draw(st.lists(st.one_of(st.floats(-100, -1e-3), st.just(-float("inf"))), min_size=m, max_size=m))
     upper = draw(st.lists(st.one_of(st.floats(1e-3, 100), st.just(float("inf"))), min_size=m, max_size=m))
     q = draw(st.lists(st.floats(0, 10), min_size=n, max_size=n))

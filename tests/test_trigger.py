@@ -26,7 +26,7 @@ from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.messages import Kept, PlanMessage, Release, messages_equal
 from dmpc.core.mpc_qp import MpcQP, StageRows, plan_cost
 from dmpc.core.system import LinearSet, Subsystem
-from dmpc.core.trajectories import Plan, kept_around, kept_plan
+from dmpc.core.trajectories import OperatingPoint, Plan, kept_around, kept_plan
 from dmpc.core.unconstrained import UnconstrainedBound
 from dmpc.offline.tubes import Tightening
 from tests.helpers.reference import A_II, B_II, K_PAPER, P_PAPER, Q_I, R_I
@@ -120,8 +120,9 @@ def test_kept_around_a_target_is_kept_plan_in_deviation_coordinates(seed):
     # the tail is K applied in deviation coordinates, not to the plant's state
     np.testing.assert_allclose(kept.v[N - 1] - u_s, K_1 @ (kept.z[N - 1] - x_s), atol=1e-12)
     assert np.max(np.abs(kept.v[N - 1] - K_1 @ kept.z[N - 1])) > 1e-3
-    # no target: kept_plan itself, bit for bit
-    plain, direct = kept_around(plan, 5, x_now, end, GAMMA_1, K_1), kept_plan(plan, 5, x_now, end, GAMMA_1, K_1)
+    # no target (the origin): kept_plan itself, bit for bit
+    origin = OperatingPoint.origin(n, m)
+    plain, direct = kept_around(plan, 5, x_now, end, GAMMA_1, K_1, origin), kept_plan(plan, 5, x_now, end, GAMMA_1, K_1)
     assert np.array_equal(plain.z, direct.z) and np.array_equal(plain.v, direct.v)
 
 
@@ -228,7 +229,7 @@ def test_violations_follow_the_offset_of_a_target():
     assert qp.violations(z[0], c, *wide, z, v)[1] == 0.0
     qp.set_offset(np.zeros(2), np.array([1.0]))  # |v + 1| <= 2.5: v <= 1.5
     assert qp.violations(z[0], c, *wide, z, v)[1] == pytest.approx(0.3 / 1.5, rel=1e-9)
-    qp.set_offset(None, None)
+    qp.set_offset(np.zeros(2), np.zeros(1))  # the origin
     assert qp.violations(z[0], c, *wide, z, v)[1] == 0.0
 
 

@@ -240,6 +240,6 @@ def test_the_horizon_search_finds_the_smallest_feasible_horizon():
 
     for smallest in (1, 2, 3, 7, 8, 9, 63, 64, 65, 150, 200):
         tried = []
-        found = smallest_feasible_horizon(lambda N: tried.append(N) or N >= smallest, 200)
+        found = smallest_feasible_horizon(lambda N, tried=tried, smallest=smallest: tried.append(N) or N >= smallest, 200)
         assert found == smallest and len(tried) <= 2 * 8 + 64
     assert smallest_feasible_horizon(lambda N: False, 200) is None

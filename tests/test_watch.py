@@ -379,7 +379,7 @@ def test_the_observer_role_may_subscribe_and_nothing_else(prepared):
     from tests.test_security import allowed
 
     acl = scenario_access_control(prepared.system, "r")
-    can = lambda flow, message, key: allowed(acl, "observer", flow, message, key)  # noqa: E731
+    can = lambda flow, message, key: allowed(acl, "observer", flow, message, key)
     telemetry = keys.telemetry("r", "step")
     assert can("ingress", "declare_subscriber", telemetry)
     assert can("ingress", "declare_liveliness_subscriber", keys.alive("r", "agent-1"))

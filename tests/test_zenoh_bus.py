@@ -428,7 +428,7 @@ def test_a_shared_bus_wakes_at_once_for_a_message_on_any_key():
         for key in ("t/plan/8", "t/plan/9", "t/release"):
             t0 = time.monotonic()
             other.publish(key, b"x")
-            assert shared.run(lambda: got[-1:] == [key], timeout=2), got
+            assert shared.run(lambda key=key: got[-1:] == [key], timeout=2), got
             assert time.monotonic() - t0 < 0.5 * POLL, key
     finally:
         other.close()

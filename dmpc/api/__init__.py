@@ -18,6 +18,7 @@ from dmpc.api.scenarios import ScenarioLike, load_scenario
 from dmpc.api.setpoints import LiveRun, SetpointError, SetpointRefused, SetpointUnanswered, StartHook, setpoint
 from dmpc.bus import keys
 from dmpc.core.errors import DmpcError
+from dmpc.methods import method_spec
 from dmpc.offline.record import Design
 from dmpc.plant.models import PlantModelError
 from dmpc.prepared import PlantFunction
@@ -43,7 +44,7 @@ class RunError(DmpcError, RuntimeError):
 
 
 def _prepared(scenario: ScenarioLike, method: str | None = None, steps: int | None = None):
-    extra = {}
+    extra: dict[str, object] = {}
     if method is not None:
         extra["options__method"] = method
     if steps is not None:
@@ -166,10 +167,10 @@ def run(scenario: ScenarioLike, *, out: str | Path | None = None, method: str | 
         reference = function_reference(plant)
         function, _ = load_plant_function(reference)
         prepared = with_plant_function(prepared, function, reference)
-    if prepared.method == "centralized":  # one QP in one process: no agents to start
+    if not method_spec(prepared.method).distributed:  # one QP in one process: no agents to start
         if secure or on_start is not None:
-            raise ValueError("secure and on_start apply to a run over Zenoh; method 'centralized' runs in this "
-                             "process (dmpc.simulate)")
+            raise ValueError(f"secure and on_start apply to a run over Zenoh; method '{prepared.method}' runs no "
+                             "agents, in this process (dmpc.simulate)")
         return simulate(prepared.scenario, out=out, plant=plant, progress=progress)
     if secure and agents_per_process > 1:
         raise ValueError("secure=True needs agents_per_process=1: a certificate belongs to one agent")

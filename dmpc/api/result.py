@@ -127,9 +127,9 @@ class Result:
 
     def table(self) -> str:
         """One line per state and input: start, end, range and bounds, as plain text."""
-        rows = [("subsystem", "quantity", "start", "end", "min", "max", "bounds")]
+        rows: list[tuple[str, ...]] = [("subsystem", "quantity", "start", "end", "min", "max", "bounds")]
         for name in self.names:
-            for kind, values, qs in (("x", self.x[name], self.states[name]), ("u", self.u[name], self.inputs[name])):
+            for values, qs in ((self.x[name], self.states[name]), (self.u[name], self.inputs[name])):
                 for j, q in enumerate(qs):
                     col = values[:, j] if values.shape[0] else np.zeros(0)
                     shown = [f"{v:.4g}" for v in (col[0], col[-1], col.min(), col.max())] if col.size else [""] * 4

@@ -23,7 +23,8 @@ __all__ = ["LiveRun", "SetpointError", "SetpointRefused", "SetpointUnanswered", 
 
 
 class SetpointError(DmpcError):
-    """A setpoint request that did not take effect; ``answer`` is the coordinator's (None if none came)."""
+    """A setpoint request that did not take effect (``message`` says why); ``answer`` is the
+    coordinator's (None if none came)."""
 
     def __init__(self, message: str, answer: SetpointAnswer | None = None) -> None:
         super().__init__(message)
@@ -118,6 +119,8 @@ class LiveRun:
         signs the requests.
     folder : Path
         The run folder being written.
+    scenario : Scenario, optional
+        The run's scenario, which names the components a request may give by name.
     """
 
     def __init__(self, endpoint: str, run_id: str, tls: Path | None, folder: Path, scenario=None) -> None:
@@ -129,7 +132,8 @@ class LiveRun:
 
     def setpoint(self, subsystem: str, x: Components = None, u: Components = None,
                  timeout: float = DEFAULT_TIMEOUT, sender: str = "python") -> SetpointAnswer:
-        """:func:`dmpc.setpoint` for this run; ``x`` and ``u`` may name the components."""
+        """:func:`dmpc.setpoint` for this run: ``subsystem``'s setpoint ``x`` and ``u`` (which may name the
+        components), waiting at most ``timeout`` seconds for the answer, sent as ``sender``."""
         return setpoint(self.endpoint, self.run_id, subsystem, x, u, tls=self.tls, timeout=timeout, sender=sender,
                         scenario=self._scenario)
 
@@ -151,7 +155,8 @@ class LiveRun:
         return json.loads(lines[k])
 
     def wait_for_step(self, k: int, timeout: float = 60.0, poll: float = 0.02) -> bool:
-        """Wait until step k is recorded; False if ``timeout`` s pass first or the run ends without it."""
+        """Wait until step k is recorded, looking every ``poll`` seconds; False if ``timeout`` s pass first
+        or the run ends without it."""
         deadline = time.monotonic() + timeout
         while True:
             if self.steps() > k:
@@ -163,7 +168,8 @@ class LiveRun:
 
 class StartHook:
     """The ``on_ready`` of :func:`dmpc.runtime.launcher.launch` that calls ``on_start(LiveRun)`` once,
-    in a daemon thread, and keeps what it raised to raise it again after the run."""
+    in a daemon thread, and keeps what it raised to raise it again after the run; ``scenario`` (the
+    run's) names the components of the LiveRun's requests."""
 
     def __init__(self, on_start: Callable[[LiveRun], object], scenario) -> None:
         self.on_start = on_start

@@ -30,7 +30,7 @@ def load_average() -> float:
 
 
 def calibration_ms(repeat: int = 7) -> float:
-    """Best time of a fixed single-threaded Python workload (10^6 additions), in ms.
+    """Best of ``repeat`` times of a fixed single-threaded Python workload (10^6 additions), in ms.
 
     Shared or throttled virtual machines run at different speeds from one hour to the next;
     figures measured at different times compare only alongside this one.
@@ -46,7 +46,8 @@ def calibration_ms(repeat: int = 7) -> float:
 
 
 def chain_overrides(M: int, steps: int, horizon: int | None = None) -> tuple[str, dict]:
-    """The paper's example for M = 4, the chain family otherwise."""
+    """The scenario file and overrides of the chain of M subsystems for ``steps`` steps (and ``horizon``,
+    None: the scenario's): the paper's example for M = 4, the chain family otherwise."""
     overrides: dict = {"steps": steps}
     if horizon is not None:
         overrides["horizon"] = horizon
@@ -57,11 +58,15 @@ def chain_overrides(M: int, steps: int, horizon: int | None = None) -> tuple[str
 
 
 def prepare_chain(M: int, steps: int, horizon: int | None = None, root: Path = Path(".")):
+    """The prepared run of :func:`chain_overrides` (M, ``steps``, ``horizon``); ``root`` is the folder of
+    ``scenarios/``."""
     path, overrides = chain_overrides(M, steps, horizon)
     return prepare(load_scenario(root / path, overrides))
 
 
 def sample_memory(out: Path, peak: dict) -> None:
+    """Raise each process's entry of ``peak`` (role -> (RSS, PSS) in MB) to its memory now, for the
+    processes of the run folder ``out`` (none before its first step)."""
     try:
         pids = json.loads((out / PROCESSES).read_text())
     except (FileNotFoundError, json.JSONDecodeError):
@@ -79,6 +84,8 @@ def sample_memory(out: Path, peak: dict) -> None:
 
 
 def closed_loop(step: Callable[[np.ndarray], np.ndarray], system, steps: int) -> dict:
+    """Run ``step`` (x -> u) in closed loop on the model of ``system`` for ``steps`` steps from x(0):
+    step time median and p99 (ms, step 0 left out), the closed-loop cost and ``final_state_norm_inf``."""
     x = system.x0.copy()
     cost, times = 0.0, []
     for _ in range(steps):
@@ -97,7 +104,7 @@ def workdir() -> tempfile.TemporaryDirectory:
 
 
 def cell(value, spec: str = ".3g") -> str:
-    """A table cell: "-" for None, a float in format ``spec``, anything else as text."""
+    """A table cell of ``value``: "-" for None, a float in format ``spec``, anything else as text."""
     if value is None:
         return "-"
     if isinstance(value, float):

@@ -111,6 +111,8 @@ def _alive(session, needed: set[str], deadline: float) -> None:
 
 
 def run_coordinator(spec: FloorSpec, port: int, out: Path) -> None:
+    """The coordinator's side of the floor ``spec``: listen on ``port``, release every step once every
+    agent's plan is in, and write the step times to ``out``."""
     session = _open(spec, port, True)
     try:
         plans = _fifo(session, f"{KEY}/plan/*")
@@ -151,6 +153,8 @@ def _burn(us: float) -> None:
 
 
 def run_agent(spec: FloorSpec, i: int, port: int) -> None:
+    """Agent i's side of the floor ``spec``, connected to the coordinator on ``port``: answer each
+    release with a plan once its neighbours' plans are in, after ``compute_us`` of work."""
     session = _open(spec, port, False)
     try:
         release = _fifo(session, f"{KEY}/release")
@@ -203,7 +207,7 @@ def measure(spec: FloorSpec, timeout: float = 600.0,
                 while_running(procs)
             for proc in procs:
                 code = proc.wait(max(1.0, end - time.monotonic()))
-                if code != 0 and not failure:
+                if code != 0 and not failure and proc.stderr is not None:
                     failure = proc.stderr.read().decode(errors="replace")[-400:]
         except subprocess.TimeoutExpired:
             failure = f"timeout after {timeout:.0f} s"
@@ -222,6 +226,8 @@ def measure(spec: FloorSpec, timeout: float = 600.0,
 
 
 def main(argv: list[str]) -> None:
+    """A process of the floor from its command line ``argv``: the spec file, the port, the role
+    (``coordinator`` OUT or ``agent`` I)."""
     spec = FloorSpec(**json.loads(Path(argv[0]).read_text()))
     port, role = int(argv[1]), argv[2]
     if role == "coordinator":

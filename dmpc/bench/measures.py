@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from unittest.mock import patch
 
 import numpy as np
 
@@ -36,7 +37,8 @@ from dmpc.setup.start import MethodStart
 
 # ---------------------------------------------------------------------------- local QP
 def qp_solve_times(horizon: int, repeat: int, root: Path = Path(".")) -> dict:
-    """Replay the QPs one agent of the paper's example solves in a closed loop (30 steps)."""
+    """Replay the QPs one agent of the paper's example solves in a closed loop (30 steps) at horizon
+    ``horizon``, each ``repeat`` times; ``root`` is the folder of ``scenarios/``."""
     prepared = prepare_chain(4, 30, horizon, root)
     agent = 1
     calls: list[tuple] = []
@@ -47,22 +49,15 @@ def qp_solve_times(horizon: int, repeat: int, root: Path = Path(".")) -> dict:
             calls.append((x.copy(), c.copy(), centre.copy(), size))
         return original(self, x, c, centre, size)
 
-    LocalQP.solve = recording
-    try:
-        build = inprocess.build_run
+    build = inprocess.build_run
 
-        def marking(*args, **kwargs):
-            run = build(*args, **kwargs)
-            run.agents[agent].controller.qp._bench_record = True
-            return run
+    def marking(*args, **kwargs):
+        run = build(*args, **kwargs)
+        run.agents[agent].controller.qp._bench_record = True
+        return run
 
-        inprocess.build_run = marking
-        try:
-            simulate(prepared, lambda record: None)
-        finally:
-            inprocess.build_run = build
-    finally:
-        LocalQP.solve = original
+    with patch.object(LocalQP, "solve", recording), patch.object(inprocess, "build_run", marking):
+        simulate(prepared, lambda record: None)
     sub = prepared.system.subsystems[agent]
     qp = LocalQP(sub, prepared.design.gains.P[agent], horizon, prepared.design.tightening[agent])
     times = []
@@ -77,8 +72,11 @@ def qp_solve_times(horizon: int, repeat: int, root: Path = Path(".")) -> dict:
 
 # ---------------------------------------------------------------------------- multi-process
 def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), timeout: float = 900) -> dict:
-    """``dmpc run`` in lockstep; step time, the bus's share, memory per process, and ``startup_s``
-    (the processes started to the first release, from the run's summary)."""
+    """``dmpc run`` of the chain of M agents (:func:`~dmpc.bench.common.chain_overrides`) for ``steps``
+    steps in lockstep, its run folder in ``workdir``, stopped after ``timeout`` seconds; ``root`` is the folder
+    of ``scenarios/``.
+    Step time, the bus's share, memory per process, and ``startup_s`` (the processes started to the
+    first release, from the run's summary)."""
     path, overrides = chain_overrides(M, steps)
     out = workdir / f"run-M{M}"
     cmd = [sys.executable, "-m", "dmpc.cli", "run", path, "--out", str(out), "--quiet", "--startup-timeout", "600"]
@@ -101,8 +99,9 @@ def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), 
             proc.wait()
     wall = time.monotonic() - t0
     if proc.returncode != 0:
+        stderr = proc.stderr.read() if proc.stderr is not None else b""
         return {"M": M, "completed": False, "topology": default_topology(M),
-                "reason": proc.stderr.read().decode(errors="replace")[-600:]}
+                "reason": stderr.decode(errors="replace")[-600:]}
     data = np.load(out / TRAJECTORY)
     step = data["step_time"][1:] * 1e3
     slowest = np.nanmax(data["solve_time"][1:], axis=1) * 1e3
@@ -125,7 +124,8 @@ def run_multiprocess(M: int, steps: int, workdir: Path, root: Path = Path("."), 
 def floor_spec(M: int, steps: int, compute_us: float, root: Path = Path(".")):
     """The bare lockstep loop (:mod:`dmpc.bench.floor`) that mirrors a run of M agents: the same
     processes, topology and neighbours, payloads of the run's release and plan sizes, and
-    ``compute_us`` of CPU per agent and step."""
+    ``compute_us`` of CPU per agent and step, for ``steps`` steps; ``root`` is the folder of
+    ``scenarios/``."""
     prepared = prepare_chain(M, steps, root=root)
     system, N = prepared.system, prepared.design.horizon
     run = f"{prepared.name}-0123abcd"  # the launcher's run ids have this length
@@ -141,13 +141,17 @@ def floor_spec(M: int, steps: int, compute_us: float, root: Path = Path(".")):
 
 
 def run_floor(M: int, steps: int, compute_us: float, root: Path = Path("."), timeout: float = 900) -> dict:
-    """The floor of a run of M agents: :func:`floor_spec` measured by :func:`dmpc.bench.floor.measure`."""
+    """The floor of a run of M agents over ``steps`` steps with ``compute_us`` of CPU per agent and step:
+    :func:`floor_spec` measured by :func:`dmpc.bench.floor.measure` (stopped after ``timeout``
+    seconds); ``root`` is the folder of ``scenarios/``."""
     return measure(floor_spec(M, steps, compute_us, root), timeout)
 
 
 def run_against_floor(M: int, steps: int, compute_us: float, workdir: Path, root: Path = Path("."),
                       timeout: float = 900, sets: int = 1) -> dict:
-    """:func:`run_multiprocess` with the floor measured just before it, and the ratios of the two.
+    """:func:`run_multiprocess` with the floor measured just before it, and the ratios of the two: M
+    agents, ``steps`` steps, ``compute_us`` of CPU per agent and step for the floor, run folders in
+    ``workdir``, ``root`` the folder of ``scenarios/``, each run stopped after ``timeout`` seconds.
 
     ``sets`` > 1 alternates floor and run that many times (this machine's speed moves from one
     minute to the next: a ratio of one pair can be off by half). The step figures and the floor's
@@ -186,6 +190,9 @@ def run_against_floor(M: int, steps: int, compute_us: float, workdir: Path, root
 
 
 def run_inprocess(M: int, steps: int, root: Path = Path(".")) -> dict:
+    """The chain of M agents (``root`` is the folder of ``scenarios/``) run for ``steps`` steps in this process
+    on the in-memory
+    bus: step time median and p99 (ms) and the closed-loop cost."""
     prepared = prepare_chain(M, steps, root=root)
     records, stamps = [], []
 
@@ -202,6 +209,9 @@ def run_inprocess(M: int, steps: int, root: Path = Path(".")) -> dict:
 
 
 def run_central_osqp(M: int, steps: int, root: Path = Path(".")) -> dict:
+    """The centralised MPC of the chain of M subsystems (``root`` is the folder of ``scenarios/``) for ``steps``
+    steps: one
+    OSQP problem set up once and re-solved each step (:class:`~dmpc.core.central_qp.CentralQP`)."""
     prepared = prepare_chain(M, steps, root=root)
     qp = CentralQP(prepared.system, prepared.design.gains.P_global(), prepared.design.horizon, "omega",
                    prepared.design.terminal.omega)
@@ -214,7 +224,9 @@ def run_central_osqp(M: int, steps: int, root: Path = Path(".")) -> dict:
 
 
 def run_central_cvxpy(M: int, steps: int, root: Path = Path(".")) -> dict:
-    """The centralised MPC as commonly written by hand: a cvxpy problem re-solved each step."""
+    """The centralised MPC of the chain of M subsystems (``root`` is the folder of ``scenarios/``) for ``steps``
+    steps, as
+    commonly written by hand: a cvxpy problem re-solved each step."""
     import cvxpy as cp
 
     prepared = prepare_chain(M, steps, root=root)
@@ -241,7 +253,8 @@ def run_central_cvxpy(M: int, steps: int, root: Path = Path(".")) -> dict:
 
 # ---------------------------------------------------------------------------- design
 def design_scaling(M: int, root: Path = Path("."), compare: bool = False) -> dict:
-    """The offline design of the chain of M subsystems (LMI gains, horizon 10), timed part by part.
+    """The offline design of the chain of M subsystems (LMI gains, horizon 10; ``root`` is the folder
+    of ``scenarios/``), timed part by part.
 
     ``lmi_s``: the gains (LMI (11) and their verification); ``terminal_set_s``: X^f;
     ``start_check_s``: the start's feasibility LP at the given horizon; ``design_s``: all of

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 from rich.progress import Progress
 
@@ -14,15 +15,17 @@ from dmpc.bench.scale import markdown_row as scale_markdown_row
 from dmpc.bench.scale import scale_row
 from dmpc.terminal.console import stderr_console
 
-FULL = {"qp_horizons": [5, 10, 20], "qp_repeat": 20,
-        "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
-        "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
-        "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)], "setpoints": [4, 64, 256],
-        "trigger": {"sweeps": [(4, 60), (64, 30)], "hosted": [(64, 1, 40), (1024, 128, 40)],
-                    "carts": [1e-7, 1e-6, 1e-5, 1e-3], "carts_steps": 80}}
-QUICK = {"qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
-         "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": [], "setpoints": [4],
-         "trigger": {"sweeps": [(4, 60)], "hosted": [], "carts": [1e-5], "carts_steps": 40}}
+FULL: dict[str, Any] = {
+    "qp_horizons": [5, 10, 20], "qp_repeat": 20,
+    "runtime": [(4, 300), (16, 150), (32, 80), (64, 30), (128, 15)],
+    "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
+    "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)], "setpoints": [4, 64, 256],
+    "trigger": {"sweeps": [(4, 60), (64, 30)], "hosted": [(64, 1, 40), (1024, 128, 40)],
+                "carts": [1e-7, 1e-6, 1e-5, 1e-3], "carts_steps": 80}}
+QUICK: dict[str, Any] = {
+    "qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
+    "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": [], "setpoints": [4],
+    "trigger": {"sweeps": [(4, 60)], "hosted": [], "carts": [1e-5], "carts_steps": 40}}
 """``floor_sets``: floor and run alternated that many times at M = 4 (once at larger M). ``scale``:
 rows (M, agents per process, steps) of the chain run with agents hosted many to a process.
 ``setpoints``: the M of the chain for what a setpoint costs (:mod:`dmpc.bench.setpoints`).
@@ -35,6 +38,9 @@ HISTORY_HEADING = "## History: earlier measurements (dated, not regenerated)"
 
 
 def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
+    """Run every benchmark of the ``quick`` or the full plan (:data:`QUICK`, :data:`FULL`); ``root`` is the
+    folder of ``scenarios/``;
+    ``show_progress``: a progress bar on the terminal. The results as JSON-ready data."""
     plan = QUICK if quick else FULL
     tasks = (len(plan["qp_horizons"]) + len(plan["runtime"]) + 3 * len(plan["baselines"]) + len(plan["design"])
              + len(plan["scale"]) + len(plan["setpoints"]) + trigger_tasks(plan["trigger"]))
@@ -82,12 +88,15 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
 
 
 def trigger_tasks(plan: dict) -> int:
-    """The progress steps of the event trigger's measures."""
+    """The progress steps of the event trigger's measures in ``plan`` (:data:`FULL`'s ``trigger``)."""
     return len(plan["sweeps"]) + len(plan["hosted"]) + len(plan["carts"])
 
 
 def run_trigger(plan: dict, into: dict, workdir: Path, root: Path, step) -> None:
-    """The event trigger against ``always`` (:mod:`dmpc.bench.trigger`), appended to ``into``."""
+    """The event trigger against ``always`` (:mod:`dmpc.bench.trigger`) as ``plan`` (:data:`FULL`'s
+    ``trigger``) says, appended to ``into``; runs go to ``workdir``, ``root`` is the folder of ``scenarios/``,
+    and ``step(label)``
+    is called after each measure (progress)."""
     for M, steps in plan["sweeps"]:
         into["sweeps"].append(trigger.sweep(M, steps, workdir, root))
         step(f"trigger sweep M={M}")
@@ -100,6 +109,7 @@ def run_trigger(plan: dict, into: dict, workdir: Path, root: Path, step) -> None
 
 
 def headline(results: dict) -> dict:
+    """The figures that matter most, from ``results`` (:func:`run_all`), None where not measured."""
     qp10 = next((q for q in results["qp"] if q["N"] == 10), None)
     m4 = next((r for r in results["runtime"] if r["M"] == 4 and r.get("completed")), None)
     done = [r["M"] for r in results["runtime"] if r.get("completed")]
@@ -123,9 +133,9 @@ def headline(results: dict) -> dict:
 
 
 def trigger_headline(measured: dict) -> dict:
-    """The event trigger's figures of the headline: on the paper's example in process (cost
-    threshold :data:`~dmpc.bench.trigger.DEFAULT_COST`), its QP solves, bytes and closed-loop cost
-    over ``always``'s; at M = 1024 hosted, both step medians from step 20 on."""
+    """The event trigger's figures of the headline, from its ``measured`` results: on the paper's
+    example in process (cost threshold :data:`~dmpc.bench.trigger.DEFAULT_COST`), its QP solves,
+    bytes and closed-loop cost over ``always``'s; at M = 1024 hosted, both step medians from step 20 on."""
     paper = next((s for s in measured.get("sweeps", []) if s["M"] == 4), None)
     event = trigger.at_cost(paper) if paper else None
     hosted = next((h for h in measured.get("hosted", []) if h["M"] == 1024), None)
@@ -136,7 +146,7 @@ def trigger_headline(measured: dict) -> dict:
         out.update(event_solves_over_always_paper=event["solves"] / always["solves"],
                    event_bytes_over_always_paper=event["bytes"] / always["bytes"],
                    event_cost_over_always_paper=event["closed_loop_cost"] / always["closed_loop_cost"])
-    if both:
+    if both and hosted is not None:
         out.update(always_step_ms_p50_late_m1024_hosted=hosted["always"]["step_ms_p50_late"],
                    event_step_ms_p50_late_m1024_hosted=hosted["event"]["step_ms_p50_late"])
     return out
@@ -149,7 +159,8 @@ def _at(rows: list[dict], M: int, key: str):
 
 
 def targets(results: dict) -> list[tuple[str, str, str]]:
-    """(target, measured, met) for each performance target dmpc is held to; "-" where not measured."""
+    """(target, measured, met) for each performance target dmpc is held to, from ``results``; "-" where
+    not measured."""
     rows: list[tuple[str, str, str]] = []
 
     def row(target: str, measured: str, met: bool | None) -> None:
@@ -165,10 +176,10 @@ def targets(results: dict) -> list[tuple[str, str, str]]:
         m4["step_ms_p99"] <= 3 if m4 else None)
     ratio50, ratio99 = (m4.get("over_floor_p50"), m4.get("over_floor_p99")) if m4 else (None, None)
     row("M = 4 lockstep step: median <= 1.5x the bus floor's (same run)",
-        f"{ratio50:.2f}x ({m4['step_ms_p50']:.2f} / {m4['floor']['step_ms_p50']:.2f} ms)" if ratio50 else "-",
+        f"{ratio50:.2f}x ({m4['step_ms_p50']:.2f} / {m4['floor']['step_ms_p50']:.2f} ms)" if ratio50 and m4 else "-",
         ratio50 <= 1.5 if ratio50 else None)
     row("M = 4 lockstep step: p99 <= 2x the bus floor's p99 (same run)",
-        f"{ratio99:.2f}x ({m4['step_ms_p99']:.2f} / {m4['floor']['step_ms_p99']:.2f} ms)" if ratio99 else "-",
+        f"{ratio99:.2f}x ({m4['step_ms_p99']:.2f} / {m4['floor']['step_ms_p99']:.2f} ms)" if ratio99 and m4 else "-",
         ratio99 <= 2 if ratio99 else None)
     by_m = {r["M"]: r for r in results["runtime"]}
     for M, what in ((64, "runs to completion"), (128, "attempted")):
@@ -209,7 +220,7 @@ def targets(results: dict) -> list[tuple[str, str, str]]:
 
 
 def markdown(results: dict, command: str) -> str:
-    """The report: when and where, the headline and the targets first, then every table.
+    """The report of ``results``: when and where, the headline and the targets first, then every table.
 
     ``command`` is what regenerates it. The figures and the history are added by
     :func:`write_report`.
@@ -302,7 +313,8 @@ def _load_text(m: dict) -> str:
 
 
 def headline_lines(results: dict) -> list[str]:
-    """The headline: the figures that matter in a sentence each, and as JSON (``dmpc bench --json``)."""
+    """The headline of ``results``: the figures that matter in a sentence each, and as JSON
+    (``dmpc bench --json``)."""
     h = results["headline"]
     said = []
     if h.get("step_ms_p50_m4") is not None:
@@ -332,7 +344,7 @@ def headline_lines(results: dict) -> list[str]:
 
 
 def trigger_said(results: dict) -> list[str]:
-    """The headline's lines of the event trigger (none when it was not measured)."""
+    """The headline's lines of the event trigger in ``results`` (none when it was not measured)."""
     h = results["headline"]
     said = []
     if h.get("event_solves_over_always_paper") is not None:
@@ -352,7 +364,8 @@ def trigger_said(results: dict) -> list[str]:
 
 
 def scale_lines(rows: list[dict]) -> list[str]:
-    """The table of the chain run with agents hosted many to a process (:mod:`dmpc.bench.scale`)."""
+    """The table of the chain run with agents hosted many to a process (:mod:`dmpc.bench.scale`), one
+    line per row of ``rows``."""
     if not rows:
         return []
     return ["", "## Agents hosted many to a process", "",
@@ -366,7 +379,7 @@ def scale_lines(rows: list[dict]) -> list[str]:
 
 
 def setpoint_lines(rows: list[dict]) -> list[str]:
-    """The table of what a setpoint costs (:mod:`dmpc.bench.setpoints`)."""
+    """The table of what a setpoint costs (:mod:`dmpc.bench.setpoints`), one line per row of ``rows``."""
     if not rows:
         return []
     return ["", "## What a setpoint costs (chain family, in this process)", "",
@@ -386,7 +399,8 @@ def setpoint_lines(rows: list[dict]) -> list[str]:
 
 
 def trigger_lines(measured: dict) -> list[str]:
-    """The section of the event trigger against ``always`` (:mod:`dmpc.bench.trigger`)."""
+    """The section of the event trigger against ``always`` (:mod:`dmpc.bench.trigger`), from its
+    ``measured`` results."""
     if not any(measured.get(key) for key in ("sweeps", "hosted", "carts")):
         return []
     lines = ["", "## Event-triggered DMPC against solving at every step", "",
@@ -420,14 +434,15 @@ def trigger_lines(measured: dict) -> list[str]:
 
 
 def kept_history(previous: str) -> str:
-    """The hand-written history of a report (from :data:`HISTORY_HEADING` to its end), or ''."""
+    """The hand-written history of the ``previous`` report (from :data:`HISTORY_HEADING` to its end), or ''."""
     at = previous.find(HISTORY_HEADING)
     return "" if at < 0 else previous[at:].rstrip() + "\n"
 
 
 def write_report(results: dict, path: Path, command: str) -> None:
-    """Write the report to ``path`` (Markdown), its figures to ``figures/`` beside it and the raw
-    results to ``path`` with ``.json``; the history of the report there before is kept at the end."""
+    """Write the report of ``results`` to ``path`` (Markdown), its figures to ``figures/`` beside it
+    and the raw results to ``path`` with ``.json``; the history of the report there before is kept
+    at the end. ``command`` is what regenerates it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     previous = path.read_text(errors="replace") if path.is_file() else ""
     figures = plot(results, path.parent / "figures")
@@ -442,6 +457,8 @@ def write_report(results: dict, path: Path, command: str) -> None:
 
 
 def plot(results: dict, folder: Path) -> list[Path]:
+    """The figures of ``results`` (step time against M, the QP's solve times, ...) drawn into ``folder``;
+    their paths."""
     import matplotlib
 
     matplotlib.use("Agg")

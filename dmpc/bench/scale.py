@@ -12,6 +12,7 @@ import secrets
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,7 +29,9 @@ memory map costs CPU that the run needs."""
 
 def scale_row(M: int, per_process: int, steps: int, workdir: Path, root: Path = Path("."), central: bool = True,
               startup_timeout: float = 600.0) -> dict:
-    """Design, run and compare the chain of ``M`` subsystems with ``per_process`` agents per process.
+    """Design, run and compare the chain of ``M`` subsystems with ``per_process`` agents per process,
+    for ``steps`` steps, the run folder in ``workdir`` (``root``: the folder of ``scenarios/``), the
+    processes waiting at most ``startup_timeout`` seconds to start.
 
     Returns
     -------
@@ -45,7 +48,7 @@ def scale_row(M: int, per_process: int, steps: int, workdir: Path, root: Path = 
     prepared = prepare_chain(M, steps, root=root)
     design_s = time.perf_counter() - t0
     hosts = group_agents(prepared.names, per_process)
-    row = {"M": M, "processes": len(hosts), "agents_per_process": max(len(h.agents) for h in hosts),
+    row: dict[str, Any] = {"M": M, "processes": len(hosts), "agents_per_process": max(len(h.agents) for h in hosts),
            "topology": default_topology(len(hosts)), "steps": steps, "design_s": design_s,
            "calibration_ms": calibration_ms(3)}
     out = Path(workdir) / f"scale-M{M}-K{per_process}"
@@ -88,8 +91,8 @@ def scale_row(M: int, per_process: int, steps: int, workdir: Path, root: Path = 
 
 
 def central_loop(prepared, steps: int) -> dict:
-    """The centralised MPC (one OSQP problem over the whole system, X^f = {Omega x <= 1}) in closed
-    loop for ``steps`` steps from x(0): its cost and its solve times."""
+    """The centralised MPC (one OSQP problem over the whole system, X^f = {Omega x <= 1}) of the
+    ``prepared`` run in closed loop for ``steps`` steps from x(0): its cost and its solve times."""
     t0 = time.perf_counter()
     qp = CentralQP(prepared.system, prepared.design.gains.P_global(), prepared.design.horizon, "omega",
                    prepared.design.terminal.omega)
@@ -110,7 +113,7 @@ HEADER = ["M", "processes", "agents / process", "topology", "design (s)", "start
 
 
 def markdown_row(r: dict) -> str:
-    """One line of the scale table."""
+    """One line of the scale table, of the :func:`scale_row` ``r``."""
     def f(key: str, digits: int = 1) -> str:
         value = r.get(key)
         return "-" if value is None else f"{value:.{digits}f}"

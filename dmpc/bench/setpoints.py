@@ -36,8 +36,9 @@ def _timed(call, repeat: int = 1) -> tuple[float, Any]:
 
 
 def target_costs(M: int, root: Path = Path(".")) -> dict:
-    """Milliseconds for a new target (median over REQUESTS), its terminal set (lambda and sigma at
-    its centre), and a governor step that bisects (a jump from the origin with settled plans)."""
+    """On the chain of M subsystems (``root``: the folder of ``scenarios/``), milliseconds for a new
+    target (median over REQUESTS), its terminal set (lambda and sigma at its centre), and a governor
+    step that bisects (a jump from the origin with settled plans)."""
     prepared = prepare_chain(M, 1, root=root)
     system, design = prepared.system, prepared.design
     K = design.gains.K_global()
@@ -65,7 +66,8 @@ def _request(system, value: float) -> Request:
 
 
 def step_costs(M: int, steps: int = 40, change: int = 20, root: Path = Path(".")) -> dict:
-    """In-process step times (ms) of the chain without setpoints and with x_{1,1} = 1 from step
+    """In-process step times (ms) of the chain of M (``root``: the folder of ``scenarios/``) for
+    ``steps`` steps, without setpoints and with x_{1,1} = 1 from step
     ``change``: the median step, the step that decides the new target (change - 1), and the median
     of the steps after it (around the target)."""
     prepared = prepare_chain(M, steps, root=root)

@@ -41,9 +41,9 @@ THRESHOLD = 1e-6
 
 # ----------------------------------------------------------------------------- figures of one run
 def step_figures(step_s: np.ndarray, late: int = LATE) -> dict:
-    """Step medians in ms from per-step times in seconds (index k: step k, NaN where not measured):
-    ``step_ms_p50`` over steps 1 to K-1 (step 0 iterates Jacobi), ``step_ms_p50_late`` from step
-    ``late`` on (None when the run is shorter)."""
+    """Step medians in ms from per-step times in seconds ``step_s`` (index k: step k, NaN where not
+    measured): ``step_ms_p50`` over steps 1 to K-1 (step 0 iterates Jacobi), ``step_ms_p50_late``
+    from step ``late`` on (None when the run is shorter)."""
     step = np.asarray(step_s, float)[1:] * 1e3
     step = step[np.isfinite(step)]
     tail = np.asarray(step_s, float)[late:] * 1e3
@@ -63,7 +63,8 @@ def run_figures(summary: dict) -> dict:
 
 
 def trigger_overrides(trigger: str, cost: float | None = None, threshold: float | None = None) -> dict:
-    """The scenario overrides of a trigger and its thresholds (None: the scenario's)."""
+    """The scenario overrides of the ``trigger`` (``always`` or ``event``) and its thresholds ``cost`` and
+    ``threshold`` (None: the scenario's)."""
     overrides: dict = {"options.trigger": trigger}
     if trigger == "event" and cost is not None:
         overrides["options.trigger_cost"] = cost
@@ -93,8 +94,9 @@ def inprocess_row(path: Path, overrides: dict, workdir: Path, name: str, design:
 
 
 def sweep(M: int, steps: int, workdir: Path, root: Path = Path("."), costs=COSTS) -> dict:
-    """The paper's example (M = 4) or the chain of M in this process: ``always``, then ``event`` at
-    each cost threshold of ``costs``.
+    """The paper's example (M = 4) or the chain of M in this process for ``steps`` steps: ``always``,
+    then ``event`` at each cost threshold of ``costs``; run folders in ``workdir``, ``root`` the
+    folder of ``scenarios/``.
 
     Returns
     -------
@@ -115,8 +117,9 @@ def sweep(M: int, steps: int, workdir: Path, root: Path = Path("."), costs=COSTS
 
 def disturbed_pair(bound: float, steps: int, workdir: Path, root: Path = Path("."), threshold: float = THRESHOLD,
                    cost: float = DEFAULT_COST, seed: int = 1) -> dict:
-    """The carts (:data:`CARTS`) with a uniform disturbance |w| <= ``bound`` on every state (seeded),
-    with ``always`` and then ``event`` (``threshold``, ``cost``), in this process."""
+    """The carts (:data:`CARTS`) with a uniform disturbance |w| <= ``bound`` on every state (drawn from
+    ``seed``), ``steps`` steps with ``always`` and then ``event`` (``threshold``, ``cost``), in this
+    process; run folders in ``workdir``, ``root`` is the folder of ``scenarios/``."""
     names = [str(s.name) for s in load_scenario(root / CARTS).resolved_subsystems()]
     disturbance = {"kind": "uniform", "bound": {name: [bound, bound] for name in names}, "seed": seed}
     base = {"steps": steps, "plant.disturbance": disturbance}
@@ -131,7 +134,8 @@ def disturbed_pair(bound: float, steps: int, workdir: Path, root: Path = Path(".
 # ----------------------------------------------------------------------------- as processes
 def hosted_run(prepared, per_process: int, out: Path, startup_timeout: float = 600.0) -> dict:
     """``prepared`` run as processes of ``per_process`` agents (what ``dmpc run --agents-per-process``
-    does after designing) into ``out``: the row of a hosted run, or ``completed`` False and why."""
+    does after designing) into ``out``, each waiting at most ``startup_timeout`` seconds to start:
+    the row of a hosted run, or ``completed`` False and why."""
     result = launch(prepared, out, f"trigger-{len(prepared.names)}-{secrets.token_hex(4)}",
                     startup_timeout=startup_timeout, show_progress=False,
                     topology=default_topology(len(group_agents(prepared.names, per_process))),
@@ -147,8 +151,9 @@ def hosted_run(prepared, per_process: int, out: Path, startup_timeout: float = 6
 
 def hosted_pair(M: int, per_process: int, steps: int, workdir: Path, root: Path = Path("."),
                 cost: float = DEFAULT_COST) -> dict:
-    """The chain of M designed once, then run as processes with ``always`` and right after with
-    ``event`` (cost threshold ``cost``), both with ``per_process`` agents to a process.
+    """The chain of M designed once, then run for ``steps`` steps as processes with ``always`` and
+    right after with ``event`` (cost threshold ``cost``), both with ``per_process`` agents to a
+    process; run folders in ``workdir``, ``root`` the folder of ``scenarios/``.
 
     Returns
     -------
@@ -186,9 +191,9 @@ def _threshold(row: dict) -> str:
 
 
 def figure_cells(row: dict, ref: dict) -> list[str]:
-    """The cells every table of the trigger has: trigger, cost threshold, closed-loop cost and its
-    ratio to ``ref``'s (the ``always`` run), solves, kept, plan messages, kept notices, kB and the
-    share of ``ref``'s solves."""
+    """The cells every table of the trigger has, for the run ``row``: trigger, cost threshold, closed-loop
+    cost and its ratio to ``ref``'s (the ``always`` run), solves, kept, plan messages, kept notices,
+    kB and the share of ``ref``'s solves."""
     size = row.get("bytes")
     return [row["trigger"], _threshold(row), cell(row.get("closed_loop_cost"), ".4f"),
             _ratio(row, ref, "closed_loop_cost", 6), cell(row.get("solves")), cell(row.get("keeps")),
@@ -205,19 +210,19 @@ CARTS_HEADER = ["disturbance bound", "threshold", *FIGURE_HEADER, "step median (
 
 
 def table(header: list[str], rows: list[list[str]]) -> list[str]:
-    """A markdown table."""
+    """A markdown table of the columns ``header`` and the ``rows``."""
     return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *("| " + " | ".join(r) + " |" for r in rows)]
 
 
 def sweep_rows(s: dict) -> list[list[str]]:
-    """One line per run of a :func:`sweep`: ``always`` first."""
+    """One line per run of the :func:`sweep` ``s``: ``always`` first."""
     ref = s["always"]
     return [[s["case"], str(s["M"]), str(s["steps"]), *figure_cells(row, ref), cell(row.get("step_ms_p50"), ".2f"),
              _reasons(row)] for row in [ref, *s["event"]]]
 
 
 def hosted_rows(h: dict) -> list[list[str]]:
-    """The two lines of a :func:`hosted_pair` (a run that did not complete says why)."""
+    """The two lines of the :func:`hosted_pair` ``h`` (a run that did not complete says why)."""
     lines = []
     for row in (h["always"], h["event"]):
         head = [str(h["M"]), str(h["processes"]), str(h["agents_per_process"]), str(h["steps"])]
@@ -231,12 +236,12 @@ def hosted_rows(h: dict) -> list[list[str]]:
 
 
 def carts_rows(d: dict) -> list[list[str]]:
-    """The two lines of a :func:`disturbed_pair`."""
+    """The two lines of the :func:`disturbed_pair` ``d``."""
     ref = d["always"]
     return [[f"{d['bound']:g}", f"{d['threshold']:g}", *figure_cells(row, ref), cell(row.get("step_ms_p50"), ".2f"),
              _reasons(row)] for row in (ref, *d["event"])]
 
 
 def at_cost(s: dict, cost: float = DEFAULT_COST) -> dict | None:
-    """The event row of a sweep at the cost threshold ``cost``, or None."""
+    """The event row of the sweep ``s`` at the cost threshold ``cost``, or None."""
     return next((row for row in s.get("event", []) if row.get("trigger_cost") == cost), None)

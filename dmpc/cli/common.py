@@ -13,7 +13,7 @@ import typer
 from dmpc.bus import keys
 from dmpc.bus.faults import FaultyBus
 from dmpc.core.errors import InputError
-from dmpc.methods import method_spec
+from dmpc.methods import lacks, method_spec
 from dmpc.prepared.bundle import load_bundle
 from dmpc.terminal.console import error_line
 from dmpc.terminal.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED, EXIT_OK, EXIT_VERDICT
@@ -26,7 +26,7 @@ app.add_typer(scenario_app, name="scenario")
 ScenarioArg = Annotated[Path, typer.Argument(help="Scenario YAML file.", show_default=False)]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override a field: KEY=VALUE, e.g. family.M=16 (repeatable).")]
 ModelOpt = Annotated[Optional[str], typer.Option("--model", help="Your own plant: module:function or path/file.py:function, a function (x, u, k) -> x_next that replaces the linear plant (a flag only: never read from a scenario file).", show_default=False)]
-MethodOpt = Annotated[Optional[str], typer.Option("--method", help="Control method: tv-box (default), tv-box-opt, fixed-box, ellipsoid, ellipsoid-adaptive, centralized (sets options.method).", show_default=False)]
+MethodOpt = Annotated[Optional[str], typer.Option("--method", help="Control method: tv-box (default), tv-box-opt, tv-box-coop, fixed-box, ellipsoid, ellipsoid-adaptive, centralized (sets options.method).", show_default=False)]
 ServerModeOpt = Annotated[str, typer.Option("--mode", help="Zenoh mode: peer, client, or router (agents then connect as clients).")]
 StepsOpt = Annotated[Optional[int], typer.Option("--steps", min=1, help="Steps to run (default: the scenario's).")]
 QuietTableOpt = Annotated[bool, typer.Option("--quiet", help="No progress bar and no summary table.")]
@@ -63,6 +63,7 @@ def with_model(prepared, model: str | None):
 
 
 def default_out(out: Path | None, scenario_name: str) -> Path:
+    """``out`` if given, else ``runs/<scenario_name>-<date>-<time>`` (the name made safe for a path)."""
     if out is not None:
         return out
     import re
@@ -73,7 +74,7 @@ def default_out(out: Path | None, scenario_name: str) -> Path:
 
 
 def load_scenario_file(path: Path, overrides: Sequence[Override] | None, steps: int | None = None):
-    """Load the scenario with ``overrides`` applied in order, then ``steps``."""
+    """Load the scenario file ``path`` with ``overrides`` (``--set``) applied in order, then ``steps``."""
     from dmpc.scenario import load_scenario, parse_override  # start-up time: pydantic only where needed
 
     pairs = {}
@@ -86,13 +87,16 @@ def load_scenario_file(path: Path, overrides: Sequence[Override] | None, steps: 
 
 
 def prepare_scenario(path: Path, overrides: Sequence[Override] | None, steps: int | None = None):
+    """The prepared run of the scenario file ``path`` with ``overrides`` and ``steps``
+    (:func:`load_scenario_file`)."""
     from dmpc.setup import prepare  # start-up time: it loads pydantic
 
     return prepare(load_scenario_file(path, overrides, steps))
 
 
 def run_exit_code(summary: dict | None, failure: str = "") -> int:
-    """1 when the run failed to run, 3 when it ran but its verdict is failed, else 0."""
+    """1 when the run failed to run (``failure`` says why), 3 when it ran but the verdict of its
+    ``summary`` is failed, else 0."""
     if failure:
         return EXIT_FAILED
     if summary is not None and summary.get("verdict") == "failed":
@@ -133,7 +137,36 @@ class FaultFlags:
 @dataclass(frozen=True)
 class NodeFlags:
     """The flags of a process of a run over Zenoh (``dmpc agent``, ``coordinator``, ``plant``):
-    the scenario's overrides and faults, the design file, and how it reaches the bus."""
+    the scenario's overrides and faults, the design file, and how it reaches the bus.
+
+    Attributes
+    ----------
+    connect, listen : list of str or None
+        The Zenoh endpoints to connect to and to listen on (``--connect``, ``--listen``).
+    mode : str
+        ``peer``, ``client`` or ``router`` (``--mode``).
+    run_id : str or None
+        The run's id (``--run-id``); None: from the scenario's name.
+    design_file : path or None
+        A ``design.json`` to use instead of designing (``--design``).
+    startup_timeout : float
+        Seconds to wait for the session and the run's start (``--startup-timeout``).
+    steps : int or None
+        Overrides the scenario's steps (``--steps``).
+    multicast : bool
+        Find peers by multicast scouting (``--multicast``).
+    lease : float or None
+        The Zenoh lease in seconds (``--lease``).
+    zenoh_config : path or None
+        A Zenoh configuration file (``--zenoh-config``).
+    tls : path or None
+        The certificate directory (``--tls``).
+    faults : FaultFlags
+        The fault flags, applied to every link.
+    set_ : sequence of overrides or None
+        The scenario's overrides (``--set``).
+    model : str or None
+        The plant's model function (``--model``)."""
 
     connect: list[str] | None = None
     listen: list[str] | None = None
@@ -155,13 +188,16 @@ class NodeFlags:
         return prepare_for_process(scenario, self.faults.overrides(self.set_), self.design_file, self.steps)
 
     def open_bus(self, role: str, shared: bool = False):
-        """The Zenoh bus of ``role`` (its certificate with ``--tls``)."""
+        """The Zenoh bus of ``role`` (its certificate with ``--tls``); ``shared``: one bus for many agents."""
         return open_bus(self.mode, self.connect, self.listen, self.multicast, self.lease, self.zenoh_config,
                         self.startup_timeout, self.tls, role, shared)
 
 
 def prepare_for_process(scenario: Path, set_: Sequence[Override] | None, design_file: Path | None,
                          steps: int | None = None):
+    """The prepared run of a process: from a run bundle (``scenario`` a ``.json`` written by
+    ``dmpc run``, which takes no ``set_``, ``design_file`` or ``steps``), else from the scenario file
+    with the overrides ``set_``, ``steps`` and the design read from ``design_file`` if given."""
     if scenario.suffix == ".json":
         # a run bundle written by ``dmpc run`` (no scenario schema needed: smaller, faster agents)
         if set_ or design_file or steps:
@@ -183,7 +219,8 @@ def prepare_for_process(scenario: Path, set_: Sequence[Override] | None, design_
 
 
 def fault_overrides(set_: Sequence[Override] | None, delay, jitter, loss, seed, deadline) -> list[Override]:
-    """The overrides plus the fault flags given (they apply to every link)."""
+    """The overrides ``set_`` plus the fault flags given (``delay``, ``jitter``, ``loss``, ``seed``,
+    ``deadline``; None: not given), which apply to every link."""
     extra = list(set_ or [])
     for key, value in (("faults.delay_ms", delay), ("faults.jitter_ms", jitter), ("faults.loss", loss),
                        ("seed", seed), ("options.deadline", deadline)):
@@ -193,7 +230,8 @@ def fault_overrides(set_: Sequence[Override] | None, delay, jitter, loss, seed, 
 
 
 def with_faults(bus, prepared, receiver: str):
-    """Wrap the bus in the seeded fault injector when the scenario asks for faults."""
+    """Wrap ``bus`` in the seeded fault injector when the ``prepared`` run asks for faults, with
+    ``receiver`` the role that receives through it."""
     if prepared.faults.is_clean:
         return bus
 
@@ -201,6 +239,8 @@ def with_faults(bus, prepared, receiver: str):
 
 
 def checked_run_id(given: str | None, prepared) -> str:
+    """The ``given`` run id (``--run-id``), or one made from the ``prepared`` run's name, checked as a key
+    chunk (InputError otherwise)."""
     import re
 
     rid = given or re.sub(r"[^A-Za-z0-9_.-]", "-", prepared.name)[:64]
@@ -211,7 +251,8 @@ def checked_run_id(given: str | None, prepared) -> str:
 
 
 def role_security(tls_dir: Path | None, role: str):
-    """(TlsFiles, access control) of ``role`` from a certificate directory, or (None, None)."""
+    """(TlsFiles, access control) of ``role`` from the certificate directory ``tls_dir``, or (None, None)
+    without one."""
     if tls_dir is None:
         return None, None
     from dmpc.security.files import node_security  # start-up time: zenoh only for network commands
@@ -224,6 +265,11 @@ def role_security(tls_dir: Path | None, role: str):
 
 def open_bus(mode: str, connect, listen, multicast: bool, lease: float | None, config_file: Path | None,
               timeout: float, tls_dir: Path | None = None, role: str = "", shared: bool = False):
+    """Open the Zenoh bus of a process: ``mode`` (peer, client, router), the endpoints to ``connect`` to
+    and to ``listen`` on, ``multicast`` scouting, the ``lease`` (s), a Zenoh ``config_file``, waiting
+    at most ``timeout`` seconds; with ``tls_dir``, the certificate of ``role``; ``shared``: one bus
+    for many agents. InputError for settings that do not make a session; a bus that does not open
+    is reported and the command exits (with the address-in-use code when the address is taken)."""
     from dmpc.bus.session import (  # start-up time: zenoh only for network commands
         AddressInUse,
         BusError,
@@ -257,26 +303,31 @@ PLANT_SIDES = ("internal", "external")
 
 
 def checked_side(value: str, flag: str) -> str:
+    """``value`` if it is ``internal`` or ``external``; InputError naming the option ``flag`` otherwise."""
     if value not in PLANT_SIDES:
         raise InputError(f"{flag}: expected internal or external, got {value!r}")
     return value
 
 
 def check_mode(mode: str) -> None:
+    """InputError unless ``mode`` is ``peer``, ``client`` or ``router``."""
     if mode not in ("peer", "client", "router"):
         raise InputError(f"--mode: expected peer, client or router, got {mode!r}")
 
 
 def require_agents(prepared, role: str) -> None:
-    """InputError unless the method runs agents (``centralized`` has no agent or plant process)."""
-    if prepared.method == "centralized":
-        raise InputError(f"dmpc {role}: method 'centralized' runs no agents and no plant process; "
-                         "use dmpc simulate or dmpc run, which run it in one process")
+    """InputError unless the method of the ``prepared`` run runs agents (``centralized`` has no agent
+    or plant process): ``dmpc role`` cannot run it."""
+    if (error := lacks(prepared.method, "distributed")) is not None:
+        raise InputError(f"dmpc {role}: {error}, and no plant process: use dmpc simulate or dmpc run, which run "
+                         "it in one process")
 
 MethodsOpt = Annotated[Optional[list[str]], typer.Option("--methods", help="Methods to run (default: all): --methods tv-box centralized ...", show_default=False)]
 
 
 def checked_methods(methods: list[str] | None, setpoints: bool = False) -> list[str]:
+    """The ``methods`` of ``--methods`` checked (all by default; with ``setpoints``, those that track
+    setpoints); InputError otherwise."""
     from dmpc.evaluation.compare import check_methods  # start-up time: the comparison only for `dmpc compare`
 
     try:
@@ -286,6 +337,7 @@ def checked_methods(methods: list[str] | None, setpoints: bool = False) -> list[
 
 
 def table(title: str, header: list[str], rows: list[list[str]]):
+    """A rich table titled ``title`` with the columns ``header`` and the ``rows`` (text)."""
     from rich import box
     from rich.table import Table
 

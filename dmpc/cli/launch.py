@@ -38,6 +38,7 @@ from dmpc.cli.common import (
     with_method,
     with_model,
 )
+from dmpc.methods import method_spec
 from dmpc.runtime import signals
 from dmpc.terminal.console import error_line, stdout_console
 from dmpc.terminal.exit_codes import EXIT_INTERRUPTED
@@ -97,7 +98,7 @@ def run(scenario: ScenarioArg,
     prepared = prepare(load_scenario_file(scenario, with_method(fault_overrides(set_, delay, jitter, loss, seed, deadline), method),
                              steps))
     prepared = with_model(prepared, model)
-    if prepared.method == "centralized":
+    if not method_spec(prepared.method).distributed:
         network = {"--tls": tls is not None, "--secure": secure, "--topology": topology is not None,
                    "--run-id": run_id is not None, "--delay": delay is not None, "--jitter": jitter is not None,
                    "--loss": loss is not None, "--deadline": deadline is not None}

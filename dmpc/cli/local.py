@@ -41,21 +41,38 @@ def scenario_schema() -> None:
 
 def validate(scenario: ScenarioArg, set_: SetOpt = None) -> None:
     """Check a scenario file (schema and cross-field rules) without designing."""
+    from dmpc.setup.coupling_check import scenario_coupling  # start-up time: pydantic and scipy only where needed
+
     scn = load_scenario_file(scenario, set_)
     subs = scn.resolved_subsystems()
     print(f"{scenario}: valid ({len(subs)} subsystems, horizon {scn.horizon}, gains {scn.design.gains})")
+    _warn_coupling(scenario_coupling(scn), scn.options.method, [s.name for s in subs])
 
 
 def design(scenario: ScenarioArg, set_: SetOpt = None,
            as_json: Annotated[bool, typer.Option("--json", help="Print design.json instead of the report.")] = False) -> None:
     """Run the offline design (gains, terminal set, tubes) and report it."""
-    prepared = prepare_scenario(scenario, set_)
-    if as_json:
-        print(json.dumps(prepared.design_json(), indent=2))
-        return
-    from dmpc.records.tables import design_report  # start-up time: tables only where printed
+    from dmpc.cli.coupling import coupling_text  # start-up time: the check loads the scenario schema (pydantic)
+    from dmpc.setup.coupling_check import design_coupling  # start-up time: as above
 
-    stdout_console().print(design_report(prepared))
+    prepared = prepare_scenario(scenario, set_)
+    coupling = design_coupling(prepared)
+    if as_json:
+        print(json.dumps({**prepared.design_json(), "input_coupling": coupling.to_json(prepared.names)}, indent=2))
+    else:
+        from dmpc.records.tables import design_report  # start-up time: tables only where printed
+
+        stdout_console().print(design_report(prepared, coupling_text(coupling, prepared.names)))
+    _warn_coupling(coupling, prepared.method, prepared.names)
+
+
+def _warn_coupling(coupling, method: str, names: list[str]) -> None:
+    """The one warning line on stderr where the method is likely to fail on the input coupling."""
+    from dmpc.cli.coupling import coupling_warning  # start-up time: the check loads the scenario schema (pydantic)
+
+    line = coupling_warning(coupling, method, names)
+    if line is not None:
+        print(f"warning: {line}", file=sys.stderr, flush=True)
 
 
 def simulate(scenario: ScenarioArg,
@@ -114,17 +131,19 @@ def compare(scenario: ScenarioArg,
     from dmpc.methods import DEFAULT_METHOD  # start-up time: as above
 
     scn = load_scenario_file(scenario, set_, steps)
-    methods = checked_methods(methods, bool(scn.setpoints))
-    _check_triggers(methods, triggers, scn)
+    _check_triggers(checked_methods(methods, bool(scn.setpoints)), triggers, scn)
     data = run_compare(scn, out, methods, show_progress=not quiet, triggers=triggers)
     console = stdout_console()
     console.print(table(f"methods on '{data['scenario']}'", comparison_header(data), comparison_rows(data)))
     console.print(comparison_legend(data))
     for name, why in data.get("skipped", {}).items():
-        console.print(f"not run: {name} ({why})")
+        console.print(f"not run: {name}: {why}")
     ratio = cost_ratios(data).get(DEFAULT_METHOD)
     if ratio is not None:
         console.print(f"closed-loop cost {DEFAULT_METHOD} / centralized = {ratio:.4f}")
+    tracking = cost_ratios(data, key="tracking_cost").get(DEFAULT_METHOD)
+    if tracking is not None:
+        console.print(f"tracking cost {DEFAULT_METHOD} / centralized = {tracking:.4f} (around the references)")
     console.print(f"comparison: {out / COMPARISON}")
     _draw_comparison_figures(out)
     failed = [m for m, e in data["methods"].items() if e.get("verdict") == "failed"]
@@ -142,7 +161,7 @@ def _check_triggers(methods: list[str], triggers: list[str] | None, scn) -> None
     )
 
     try:
-        runnable(methods, check_triggers(triggers, scn))
+        runnable(methods, check_triggers(triggers, scn), bool(scn.setpoints))
     except ValueError as exc:
         raise InputError(f"--triggers: {exc}") from None
 
@@ -153,7 +172,7 @@ def _draw_comparison_figures(out: Path) -> None:
 
     try:
         paths = draw_comparison(out)
-    except Exception as exc:  # the results are written already; a drawing problem must not hide them
+    except Exception as exc:  # noqa: BLE001 - the results are written already; a drawing problem must not hide them
         print(f"figures: not drawn ({type(exc).__name__}: {exc})", file=sys.stderr)
         return
     if paths:

@@ -244,7 +244,7 @@ def router(listen: ListenOpt = None,
 
     try:
         session = zenoh.open(config)
-    except Exception as exc:  # zenoh reports bind failures as a generic error
+    except Exception as exc:  # noqa: BLE001 - zenoh reports bind failures as a generic error
         error_line(f"router: cannot listen on {', '.join(endpoints)} ({exc})")
         raise typer.Exit(EXIT_FAILED) from None
     print(f"router listening on {', '.join(endpoints)} (Ctrl-C to stop)", flush=True)
@@ -377,8 +377,8 @@ def setpoint(connect: ConnectOpt = None,
 
 
 def flag_components(texts: list[str] | None, flag: str) -> list[float | None] | dict[str, float | None] | None:
-    """The values of ``--x`` or ``--u``: ``1.0,null`` by position (one flag), or ``NAME=VALUE`` by
-    name (comma-separated, the flag repeatable); None when not given."""
+    """The values of ``--x`` or ``--u`` (``flag``) from their ``texts``: ``1.0,null`` by position (one
+    flag), or ``NAME=VALUE`` by name (comma-separated, the flag repeatable); None when not given."""
     if texts is None:
         return None
     parts = [part.strip() for text in texts for part in text.split(",")]

@@ -21,6 +21,7 @@ Pure numerics: no I/O.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -90,7 +91,7 @@ def local_zoh(system: CoupledSystem, dt: float) -> CoupledSystem:
 
 
 def exact_zoh(system: CoupledSystem, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """The exact zero-order hold of the whole coupled system.
+    """The exact zero-order hold of the whole coupled ``system`` with sampling period ``dt``.
 
     Returns
     -------
@@ -101,12 +102,22 @@ def exact_zoh(system: CoupledSystem, dt: float) -> tuple[np.ndarray, np.ndarray]
 
 
 def allowed_pairs(system: CoupledSystem) -> set[tuple[int, int]]:
-    """Ordered pairs (target, source) whose blocks the controllers can use: the couplings and
-    both directions of every communication edge (agents on an edge exchange plans)."""
+    """Ordered pairs (target, source) whose blocks the controllers of ``system`` can use: the
+    couplings and both directions of every communication edge (agents on an edge exchange plans)."""
     pairs = {(c.target, c.source) for c in system.couplings}
     for i, j in system.edges:
         pairs |= {(i, j), (j, i)}
     return pairs
+
+
+class FillInBlock(TypedDict):
+    """One block of :class:`FillIn`: ``matrix`` ("A" or "B") of subsystem ``target`` (row) and
+    ``source`` (column), and its ``largest`` absolute entry."""
+
+    target: str
+    source: str
+    matrix: str
+    largest: float
 
 
 @dataclass(frozen=True)
@@ -126,16 +137,16 @@ class FillIn:
 
     largest: float
     relative: float
-    blocks: list[dict]
+    blocks: list[FillInBlock]
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {"largest": self.largest, "relative": self.relative, "blocks": self.blocks}
 
 
 def fill_in(system: CoupledSystem, A: np.ndarray, B: np.ndarray) -> FillIn:
     """The entries of the global ``A`` (n x n) and ``B`` (n x m) outside ``system``'s graph."""
     pairs = allowed_pairs(system)
-    blocks = []
+    blocks: list[FillInBlock] = []
     for i, t in enumerate(system.subsystems):
         for j, s in enumerate(system.subsystems):
             if i == j or (i, j) in pairs:
@@ -221,7 +232,7 @@ class DiscreteModel:
     fill_in: FillIn
     model_error: float
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         """The discrete matrices used and how far they are from the exact ones (for ``design.json``)."""
         s = self.system
         return {

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import osqp
@@ -134,8 +135,9 @@ class MpcQP:
         OSQP settings overriding DEFAULT_SETTINGS.
     """
 
-    def __init__(self, A, B, Q, R, P, horizon: int, inputs: StageRows, states: StageRows | None,
-                 terminal: np.ndarray, settings: dict | None = None) -> None:
+    def __init__(self, A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray, horizon: int,
+                 inputs: StageRows, states: StageRows | None, terminal: np.ndarray,
+                 settings: dict[str, Any] | None = None) -> None:
         n, m, N = B.shape[0], B.shape[1], horizon
         self.n, self.m, self.N = n, m, N
         self._Q, self._R, self._P = Q, R, P
@@ -178,29 +180,26 @@ class MpcQP:
         self._nvars = nz + nv
         self._cold = False
         self._base = (self._l.copy(), self._u.copy())  # the stage bounds around the origin
-        self._offset: tuple[np.ndarray, np.ndarray] | None = None
+        self._offset = (np.zeros(n), np.zeros(m))  # the steady state the stage rows are around (set_offset)
         # violations() multiplies a plan by the rows at every kept step: dense is faster while small
         self._dense_rows = self._rows.toarray() if self._rows.shape[0] * self._rows.shape[1] <= DENSE_ROWS else None
         self._scale_row_bounds()
 
-    def set_offset(self, x_s: np.ndarray | None, u_s: np.ndarray | None) -> None:
+    def set_offset(self, x_s: np.ndarray, u_s: np.ndarray) -> None:
         """Move the stage rows to deviation coordinates around a steady state: U - u_s, X - x_s.
 
-        x_s (n,) and u_s (m,); None for both (or zeros) is the origin, the rows as set up.
-        Only the bounds change, so the factorisation is kept.
+        x_s (n,) and u_s (m,); zeros are the origin, the rows as set up (restored exactly). Only
+        the bounds change, so the factorisation is kept.
         """
-        if x_s is None or u_s is None or (not np.any(x_s) and not np.any(u_s)):
-            if self._offset is None:
-                return
-            self._offset = None
-            for rows, _, _ in self._stages:
-                self._l[rows], self._u[rows] = self._base[0][rows], self._base[1][rows]
-            self._scale_row_bounds()
+        x_s, u_s = np.array(x_s, float), np.array(u_s, float)
+        if np.array_equal(self._offset[0], x_s) and np.array_equal(self._offset[1], u_s):
             return
-        if self._offset is not None and np.array_equal(self._offset[0], x_s) and np.array_equal(self._offset[1], u_s):
-            return
-        self._offset = (np.array(x_s, float), np.array(u_s, float))
+        self._offset = (x_s, u_s)
+        at_origin = not np.any(x_s) and not np.any(u_s)
         for (rows, H, steps), shift in zip(self._stages, (u_s, x_s)):
+            if at_origin:
+                self._l[rows], self._u[rows] = self._base[0][rows], self._base[1][rows]
+                continue
             moved = np.tile(H @ shift, steps)
             self._l[rows] = np.clip(self._base[0][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
             self._u[rows] = np.clip(self._base[1][rows] - moved, -OSQP_INFTY, OSQP_INFTY)
@@ -208,10 +207,10 @@ class MpcQP:
 
     def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
               terminal_upper: np.ndarray) -> QPSolution:
-        """Solve from x (n,) with feed-forward c (N, n) or None and terminal bounds (r_f,).
+        """Solve from x (n,) with the feed-forward ``coupling`` c (N, n) or None and the terminal rows'
+        bounds ``terminal_lower``, ``terminal_upper`` (r_f,).
 
-        Infinite terminal bounds are allowed (clipped to OSQP_INFTY).
-        """
+        Infinite terminal bounds are allowed (clipped to OSQP_INFTY)."""
         n, nz = self.n, self._nz
         l, u = self._l, self._u
         np.negative(x, out=l[:n])
@@ -255,10 +254,10 @@ class MpcQP:
     def violations(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
                    terminal_upper: np.ndarray, z: np.ndarray, v: np.ndarray) -> tuple[float, float]:
         """How far the plan z (N+1, n), v (N, m) is from a feasible point of the QP that
-        :meth:`solve` would solve with the same arguments: the largest residual of its dynamics
-        rows, and the largest excess over its input, state and terminal rows, each relative to
-        max(1, |bound|). Both 0 for a feasible plan, both inf for a plan that is not finite;
-        nothing is solved."""
+        :meth:`solve` would solve with the same arguments (x, coupling, terminal_lower,
+        terminal_upper): the largest residual of its dynamics rows, and the largest excess over its
+        input, state and terminal rows, each relative to max(1, |bound|). Both 0 for a feasible plan,
+        both inf for a plan that is not finite; nothing is solved."""
         nz, n = self._nz, self.n
         w = np.concatenate((z.reshape(-1), v.reshape(-1)))
         if not np.isfinite(w).all():
@@ -287,7 +286,7 @@ class MpcQP:
         lower, upper = self._l[rows].copy(), self._u[rows].copy()
         self._row_bounds = (lower, upper, np.maximum(1.0, np.abs(lower)), np.maximum(1.0, np.abs(upper)))
 
-    def _run(self, l: np.ndarray, u: np.ndarray):
+    def _run(self, l: np.ndarray, u: np.ndarray) -> tuple[Any, np.ndarray]:
         """Set the bounds l, u (each (rows,)) and solve; OSQP's info and primal solution (vars,)."""
         self._solver.update(l=l, u=u)
         res = self._solver.solve(raise_error=False)
@@ -299,6 +298,7 @@ class MpcQP:
 
 
 def plan_cost(z: np.ndarray, v: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> float:
-    """sum_{t<N} z'Qz + v'Rv + z(N)'P z(N) for z (N+1, n), v (N, m)."""
+    """sum_{t<N} z'Qz + v'Rv + z(N)'P z(N) for z (N+1, n), v (N, m), with the weights Q (n, n),
+    R (m, m) and P (n, n)."""
     zs, zN = z[:-1], z[-1]
     return float(((zs @ Q) * zs).sum() + ((v @ R) * v).sum() + zN @ P @ zN)

@@ -9,7 +9,9 @@ box sets only (a polytope has no per-coordinate bounds: they are infinite here).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -48,14 +50,56 @@ def time_axis(steps: int, dt: float | None) -> np.ndarray:
     return np.arange(steps + 1, dtype=float) * (dt if dt is not None else 1.0)
 
 
-def _box(spec, dim: int) -> tuple[np.ndarray, np.ndarray]:
+class Labelled(Protocol):
+    """A scenario's name and unit of one quantity (a ``dmpc.scenario.LabelSpec``)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def unit(self) -> str: ...
+
+
+class SubsystemQuantities(Protocol):
+    """What is read here of a scenario's subsystem (a ``dmpc.scenario.SubsystemSpec``): its name,
+    sizes, labels and sets."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def n(self) -> int: ...
+
+    @property
+    def m(self) -> int: ...
+
+    @property
+    def states(self) -> Sequence[Labelled] | None: ...
+
+    @property
+    def inputs(self) -> Sequence[Labelled] | None: ...
+
+    @property
+    def state(self) -> object: ...
+
+    @property
+    def input(self) -> object: ...
+
+
+class ScenarioQuantities(Protocol):
+    """What is read here of a scenario (a ``dmpc.scenario.Scenario``): its subsystems."""
+
+    def resolved_subsystems(self) -> Sequence[SubsystemQuantities]: ...
+
+
+def _box(spec: object, dim: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-coordinate bounds of a scenario set (a BoxSpec), infinite for a polytope or none."""
-    if spec is not None and hasattr(spec, "lower"):
+    if spec is not None and hasattr(spec, "lower") and hasattr(spec, "upper"):  # a BoxSpec has both
         return np.asarray(spec.lower, float), np.asarray(spec.upper, float)
     return np.full(dim, -np.inf), np.full(dim, np.inf)
 
 
-def quantities(scenario) -> tuple[dict[str, tuple[Quantity, ...]], dict[str, tuple[Quantity, ...]]]:
+def quantities(scenario: ScenarioQuantities) -> tuple[dict[str, tuple[Quantity, ...]], dict[str, tuple[Quantity, ...]]]:
     """The states and inputs of every subsystem of a scenario, by subsystem name.
 
     Parameters
@@ -67,14 +111,15 @@ def quantities(scenario) -> tuple[dict[str, tuple[Quantity, ...]], dict[str, tup
     states : dict name -> tuple of Quantity (n_i entries)
     inputs : dict name -> tuple of Quantity (m_i entries)
     """
-    states, inputs = {}, {}
+    states: dict[str, tuple[Quantity, ...]] = {}
+    inputs: dict[str, tuple[Quantity, ...]] = {}
     for sub in scenario.resolved_subsystems():
         states[sub.name] = _listed(sub.states, "x", *_box(sub.state, sub.n))
         inputs[sub.name] = _listed(sub.inputs, "u", *_box(sub.input, sub.m))
     return states, inputs
 
 
-def named_labels(scenario) -> dict[str, dict[str, tuple[str, ...]]]:
+def named_labels(scenario: ScenarioQuantities) -> dict[str, dict[str, tuple[str, ...]]]:
     """The labels (``Ta [K]``) of the quantities a scenario names: ``{"state": {subsystem: labels},
     "input": {...}}``, only for the subsystems whose ``states:`` / ``inputs:`` are given (for
     messages that otherwise say ``component x1``)."""
@@ -89,20 +134,22 @@ def named_labels(scenario) -> dict[str, dict[str, tuple[str, ...]]]:
 
 
 def default_quantities(names: list[str], sizes: list[int], prefix: str) -> dict[str, tuple[Quantity, ...]]:
-    """Unnamed, unbounded quantities (``x1, x2, ...``) for runs whose scenario cannot be read."""
+    """Unnamed, unbounded quantities (``x1, x2, ...`` with ``prefix`` ``x``) for runs whose scenario
+    cannot be read: for each of ``names``, as many as its entry of ``sizes``."""
     return {name: tuple(Quantity(f"{prefix}{j + 1}") for j in range(size)) for name, size in zip(names, sizes)}
 
 
-def run_quantities(scenario, names: list[str], n: list[int],
+def run_quantities(scenario: ScenarioQuantities | None, names: list[str], n: list[int],
                    m: list[int]) -> tuple[dict[str, tuple[Quantity, ...]], dict[str, tuple[Quantity, ...]]]:
     """:func:`quantities` of a run's scenario, or unnamed ones of the given sizes without one
-    (``scenario`` None): subsystem ``names`` with n_i states and m_i inputs."""
+    (``scenario`` None): subsystem ``names`` with n[i] states and m[i] inputs."""
     if scenario is not None:
         return quantities(scenario)
     return default_quantities(names, n, "x"), default_quantities(names, m, "u")
 
 
-def _listed(labels, prefix: str, lower: np.ndarray, upper: np.ndarray) -> tuple[Quantity, ...]:
+def _listed(labels: Sequence[Labelled] | None, prefix: str, lower: np.ndarray,
+            upper: np.ndarray) -> tuple[Quantity, ...]:
     out = []
     for j in range(lower.size):
         name, unit = (labels[j].name, labels[j].unit) if labels else (f"{prefix}{j + 1}", "")

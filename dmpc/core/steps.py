@@ -17,20 +17,16 @@ Coupling = Literal["feedforward", "nominal"]
 """What an agent's prediction takes of its neighbours: their assumed trajectories (``feedforward``),
 or nothing (``nominal``, the paper's decoupled model)."""
 COUPLINGS: tuple[Coupling, ...] = get_args(Coupling)
-Method = Literal["tv-box", "tv-box-opt", "fixed-box", "ellipsoid", "ellipsoid-adaptive", "centralized"]
-"""The name of a control method (``options.method``, ``--method``; dmpc.methods says what each does)."""
+Method = Literal["tv-box", "tv-box-opt", "tv-box-coop", "fixed-box", "ellipsoid", "ellipsoid-adaptive", "centralized"]
+"""The name of a control method (``options.method``, ``--method``; dmpc.methods says what each does
+and what it can do: its ``MethodSpec``)."""
 METHOD_NAMES: tuple[Method, ...] = get_args(Method)
 DEFAULT_METHOD: Method = "tv-box"
-SETPOINT_METHODS: tuple[Method, ...] = ("tv-box", "tv-box-opt")
-"""The methods that track setpoints: their terminal boxes move with the target (docs/algorithm.md,
-"Setpoints")."""
 
 Trigger = Literal["always", "event"]
 """When an agent solves: at every step (``always``), or when its event trigger fires (``event``;
 docs/algorithm.md, "Event-triggered DMPC")."""
 TRIGGERS: tuple[Trigger, ...] = get_args(Trigger)
-TRIGGER_METHODS: tuple[Method, ...] = ("tv-box", "tv-box-opt")
-"""The methods an event trigger works with: a kept plan ends at the box centre alpha_i(k)."""
 
 NO_SEED = "no centralised seed: "
 """Starts the part of a k = 0 note that says why the centralised QP gave no plan to start from,
@@ -49,6 +45,9 @@ class ProtocolOptions:
         ``options.iterations`` and ``options.initial_iterations``).
     tolerance, initial_tolerance : float
         The rounds stop early when the largest plan change is below this.
+    cooperative_step : {"line", "equal"}
+        How a round of the cooperative method combines the agents' proposals
+        (``options.cooperative_step``; docs/algorithm.md, "Cooperative DMPC"); unused by the others.
     """
 
     steps: int
@@ -56,17 +55,28 @@ class ProtocolOptions:
     tolerance: float = 1e-9
     initial_rounds: int = 200
     initial_tolerance: float = 1e-9
+    cooperative_step: Literal["line", "equal"] = "line"
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         """As run.json holds it: the scenario's option names."""
         return {"steps": self.steps, "iterations": self.rounds, "tolerance": self.tolerance,
-                "initial_iterations": self.initial_rounds, "initial_tolerance": self.initial_tolerance}
+                "initial_iterations": self.initial_rounds, "initial_tolerance": self.initial_tolerance,
+                "cooperative_step": self.cooperative_step}
 
     @classmethod
-    def from_json(cls, data: dict) -> "ProtocolOptions":
-        """From :meth:`to_json`'s content."""
+    def from_json(cls, data: dict[str, Any]) -> "ProtocolOptions":
+        """From :meth:`to_json`'s content.
+
+        Parameters
+        ----------
+        data : dict
+            The map :meth:`to_json` wrote (run.json's ``protocol``): ``steps``, ``iterations``,
+            ``tolerance``, ``initial_iterations``, ``initial_tolerance`` and, optionally,
+            ``cooperative_step`` (``"line"`` when absent or anything but ``"equal"``).
+        """
         return cls(steps=int(data["steps"]), rounds=int(data["iterations"]), tolerance=float(data["tolerance"]),
-                   initial_rounds=int(data["initial_iterations"]), initial_tolerance=float(data["initial_tolerance"]))
+                   initial_rounds=int(data["initial_iterations"]), initial_tolerance=float(data["initial_tolerance"]),
+                   cooperative_step="equal" if data.get("cooperative_step") == "equal" else "line")
 
 
 @dataclass(frozen=True)
@@ -93,12 +103,26 @@ class TriggerOptions:
     def event(self) -> bool:
         return self.mode == "event"
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         return {"mode": self.mode, "threshold": list(self.threshold), "cost": list(self.cost),
                 "max_keep": self.max_keep}
 
     @classmethod
-    def from_json(cls, data: dict) -> "TriggerOptions":
+    def from_json(cls, data: dict[str, Any]) -> "TriggerOptions":
+        """From :meth:`to_json`'s content.
+
+        Parameters
+        ----------
+        data : dict
+            The map :meth:`to_json` wrote: ``mode`` (``"always"`` when absent), ``threshold`` and
+            ``cost`` (lists of float, empty when absent) and ``max_keep`` (an int, or None or absent:
+            no limit).
+
+        Raises
+        ------
+        ValueError
+            ``mode`` is not one of :data:`TRIGGERS`.
+        """
         mode = data.get("mode", "always")
         if mode not in TRIGGERS:
             raise ValueError(f"trigger mode {mode!r} is not one of {', '.join(TRIGGERS)}")
@@ -125,6 +149,54 @@ class StepRecord:
     ``latency`` (M,) is, per agent, the time from the agent publishing the plan the step used to
     the host receiving it (NaN for an agent without a plan, or where no clock is kept);
     ``step_time`` is the step's wall time on the host's clock (NaN where none is kept).
+
+    Attributes
+    ----------
+    k : int
+        The step index.
+    x, u : ndarray, shapes (n,) and (m,)
+        The measured state x(k) and the input applied u(k), in the global order.
+    alpha, beta : ndarray (n,), float
+        The terminal box of step k (with setpoints, alpha is relative to the target applied).
+    x_next : ndarray, shape (n,)
+        The state x(k+1) the plant reached.
+    alpha_next, beta_next : ndarray (n,), float
+        The terminal box of step k+1 (alpha(k+1) = (A+BK) eta(k), beta(k+1) = sigma(alpha(k+1))).
+    J : float
+        sum_i J_i*(k), the sum of ``J_agents``.
+    J_agents : list of float, M entries
+        Each agent's own cost (a fallback agent's: the cost of its shifted candidate).
+    S : float
+        S(x(k)) = sum_i ||x_i(k)||^2 / |N_i| (:meth:`dmpc.core.system.CoupledSystem.spread`).
+    rounds : int
+        The Jacobi rounds the step used.
+    max_change : float
+        The largest plan change in the last round (NaN where no rounds are run).
+    status : list of str, M entries
+        Per agent, its QP status (a QPStatus value), ``missed`` or ``kept``.
+    fallback : list of bool, M entries
+        Whether the plant applied agent i's fallback.
+    fallback_reason : list of str, M entries
+        Why (``missed``, ``lost``, ``qp infeasible``, ..., ``input outside U_i``); "" without a fallback.
+    solve_time : list of float, M entries
+        Seconds in the solver per agent (last round; NaN for an agent that sent nothing).
+    qp_iterations : list of int, M entries
+        The solver's iteration count per agent (last round).
+    plans_z, plans_v : list of ndarray, shapes (N+1, n_i) and (N, m_i)
+        The plan the step recorded for each agent (its shifted candidate for a fallback).
+    latency : list of float, M entries
+        See above.
+    step_time : float
+        See above.
+    note : str
+        What else happened in the step (an agent lost or back, a setpoint taken, how k = 0
+        started); "" if nothing.
+    r, r_next : ndarray (M,) or None
+        See above.
+    tracking : TrackingStep or None
+        See above.
+    solve_reason : list of str or None
+        See above.
     """
 
     k: int

@@ -8,9 +8,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
+from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True)
@@ -31,19 +33,21 @@ class LinearSet:
     upper: np.ndarray
 
     @classmethod
-    def box(cls, lower, upper) -> "LinearSet":
+    def box(cls, lower: ArrayLike, upper: ArrayLike) -> "LinearSet":
+        """The box ``lower <= x <= upper`` (each shape (d,); infinite entries for unbounded sides)."""
         lo = np.asarray(lower, dtype=float)
         hi = np.asarray(upper, dtype=float)
         return cls(np.eye(lo.size), lo, hi)
 
     @classmethod
-    def polytope(cls, H, h) -> "LinearSet":
-        h = np.asarray(h, dtype=float)
-        return cls(np.atleast_2d(np.asarray(H, dtype=float)), np.full(h.size, -np.inf), h)
+    def polytope(cls, H: ArrayLike, h: ArrayLike) -> "LinearSet":
+        """The polytope ``H x <= h``: H (r, d), h (r,)."""
+        bounds = np.asarray(h, dtype=float)
+        return cls(np.atleast_2d(np.asarray(H, dtype=float)), np.full(bounds.size, -np.inf), bounds)
 
     @property
     def dim(self) -> int:
-        return self.H.shape[1]
+        return int(self.H.shape[1])
 
     @property
     def is_box(self) -> bool:
@@ -86,16 +90,17 @@ class LinearSet:
         """
         if values.shape[0] == 0:
             return np.zeros(0)
-        return self._excess(values, tolerance, axis=1)
+        return np.asarray(self._excess(values, tolerance, axis=1))
 
     def largest_excess(self, values: np.ndarray, tolerance: float = 0.0) -> float:
-        """The largest entry of :meth:`excess` (-inf when there are no values): one number, as
-        the plant needs it for every plan it receives."""
+        """The largest entry of :meth:`excess` of ``values`` with ``tolerance`` (-inf when there are no
+        values): one number, as the plant needs it for every plan it receives."""
         if values.shape[0] == 0:
             return -math.inf
         return float(self._excess(values, tolerance, axis=None))
 
-    def _excess(self, values: np.ndarray, tolerance: float, axis: int | None):
+    def _excess(self, values: np.ndarray, tolerance: float, axis: int | None) -> Any:
+        """The rows' excess: an array (K,) for ``axis=1``, one number for ``axis=None``."""
         HT, lower, upper, finite = self._bounds(tolerance)
         if lower.size == 0:
             return np.full(values.shape[0], -np.inf) if axis else -math.inf
@@ -106,7 +111,7 @@ class LinearSet:
         with np.errstate(invalid="ignore"):
             return np.fmax(Hv - upper, lower - Hv).max(axis=axis)
 
-    def _bounds(self, tolerance: float) -> tuple:
+    def _bounds(self, tolerance: float) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, bool]:
         """H^T (None for a box), the bounds moved out by ``tolerance``, and whether all are
         finite; kept per tolerance, since the plant checks every plan against its input set."""
         entry = self._widened.get(tolerance)
@@ -120,10 +125,11 @@ class LinearSet:
         return entry
 
     @cached_property
-    def _widened(self) -> dict:
+    def _widened(self) -> dict[float, tuple[np.ndarray | None, np.ndarray, np.ndarray, bool]]:
         return {}
 
     def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
+        """Whether x (d,) meets every row of the set, up to ``tol``."""
         v = self.H @ x
         return bool(np.all(v <= self.upper + tol) and np.all(v >= self.lower - tol))
 
@@ -156,11 +162,11 @@ class Subsystem:
 
     @property
     def n(self) -> int:
-        return self.A.shape[0]
+        return int(self.A.shape[0])
 
     @property
     def m(self) -> int:
-        return self.B.shape[1]
+        return int(self.B.shape[1])
 
 
 @dataclass(frozen=True)
@@ -228,9 +234,11 @@ class CoupledSystem:
         return np.concatenate([[0], np.cumsum([s.m for s in self.subsystems])]).astype(int)
 
     def xs(self, i: int) -> slice:
+        """The slice of subsystem i's states in the global state."""
         return slice(self.state_offsets[i], self.state_offsets[i + 1])
 
     def us(self, i: int) -> slice:
+        """The slice of subsystem i's inputs in the global input."""
         return slice(self.input_offsets[i], self.input_offsets[i + 1])
 
     @property
@@ -242,7 +250,7 @@ class CoupledSystem:
         return int(self.input_offsets[-1])
 
     def coupling(self, target: int, source: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(A_ij, B_ij)`` with zeros where there is no coupling."""
+        """``(A_ij, B_ij)`` of subsystem i = ``target`` from j = ``source``, with zeros where there is no coupling."""
         for c in self.couplings:
             if c.target == target and c.source == source:
                 return c.A, c.B
@@ -290,9 +298,11 @@ class CoupledSystem:
         return tuple(len(self.neighbours[i]) for i in range(self.M))
 
     def split_state(self, x: np.ndarray) -> list[np.ndarray]:
+        """The global state x (n,) as each subsystem's part, in order."""
         return [x[part] for part in self._state_parts]
 
     def split_input(self, u: np.ndarray) -> list[np.ndarray]:
+        """The global input u (m,) as each subsystem's part, in order."""
         return [u[self.us(i)] for i in range(self.M)]
 
     def spread(self, x: np.ndarray) -> float:
@@ -336,9 +346,10 @@ def stack_sets(sets: list[LinearSet | None], dims: list[int], sparse: bool = Fal
 
 
 def project_onto(linear_set: LinearSet, u: np.ndarray) -> np.ndarray:
-    """Euclidean projection of u onto a LinearSet (clip for boxes, a small QP otherwise)."""
+    """Euclidean projection of u onto ``linear_set`` (clip for boxes, a small QP otherwise)."""
     if linear_set.is_box:
-        return np.clip(u, linear_set.lower, linear_set.upper)
+        clipped: np.ndarray = np.clip(u, linear_set.lower, linear_set.upper)
+        return clipped
     if linear_set.contains(u):
         return np.asarray(u, float)
     import osqp

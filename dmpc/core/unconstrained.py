@@ -55,7 +55,7 @@ class UnconstrainedBound:
         self._n = n
 
     def cost(self, x: np.ndarray, coupling: np.ndarray | None) -> float:
-        """The unconstrained optimum from x (n,) with feed-forward c (N, n) (None: zeros)."""
+        """The unconstrained optimum from x (n,) with the feed-forward ``coupling`` c (N, n) (None: zeros)."""
         if coupling is None:
             head = self._form[:self._n, :self._n]
             return float(x @ head @ x)

@@ -14,9 +14,16 @@ The offline design is computed once and reused by every method (they share it by
 | ``solve_time_median_s`` | median QP solve time |
 | ``verdict``, ``failures`` | the run's verdict (``ok`` or ``failed``) and the kinds of its failures |
 
+On a scenario with setpoints, the methods that track them run (``MethodSpec.tracks_setpoints``):
+by default every one of them, the others left out and named in ``skipped`` with why; a method
+listed by name that does not track them is refused. Each entry then also has ``tracking_cost``,
+sum_k ||x(k) - x_r(k)||_Q^2 + ||u(k) - u_r(k)||_R^2 around the references (x_r, u_r) (the targets
+of the requests, the same for every method), where ``closed_loop_cost`` is around each method's own
+applied targets, which its reference governor may hold back for a different number of steps.
+
 With triggers (``triggers=[...]``, ``dmpc compare --triggers always event``, or a scenario whose own
 ``options.trigger`` is ``event``), each method runs with each trigger, the event trigger only with
-the methods of :data:`~dmpc.core.steps.TRIGGER_METHODS`. An entry is then named ``<method>`` for
+the methods that support it (``MethodSpec.supports_trigger``). An entry is then named ``<method>`` for
 ``always`` and ``<method>+<trigger>`` otherwise (its run folder too), and it also holds:
 
 | key | meaning |
@@ -29,8 +36,9 @@ the methods of :data:`~dmpc.core.steps.TRIGGER_METHODS`. An entry is then named 
 | ``solve_reasons`` | why agents solved rather than kept, counted (empty with ``always``) |
 | ``step_time_median_s`` | median wall time of a step in this process, steps 1 to K-1 (k = 0 iterates Jacobi) |
 
-and ``comparison.json`` has ``triggers`` (those run) and ``skipped`` (an entry name and why it did
-not run, for each pair left out).
+and ``comparison.json`` has ``triggers`` (those run). With triggers or setpoints it has ``skipped``:
+for each run left out, its entry name and why it did not run (the error of
+:func:`dmpc.methods.lacks`, naming the method and what it cannot do).
 """
 from __future__ import annotations
 
@@ -41,10 +49,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dmpc.core.steps import SETPOINT_METHODS, TRIGGER_METHODS, TRIGGERS
-from dmpc.methods import METHOD_NAMES, method_spec
+from dmpc.core.steps import TRIGGERS
+from dmpc.core.system import CoupledSystem
+from dmpc.methods import METHOD_NAMES, lacks, method_spec, require
 from dmpc.records.files import COMPARISON, STEP_LOG, TRAJECTORY
-from dmpc.records.run_folder import claim_folder, refuse_used, write_json
+from dmpc.records.run_folder import claim_folder, refuse_used, stage_cost, write_json
 from dmpc.records.session import RunRecorder
 from dmpc.records.tables import number_text
 from dmpc.runtime.inprocess import record_run
@@ -62,16 +71,21 @@ def steps_to(x: np.ndarray, tol: float = CONVERGED, target: np.ndarray | None = 
     return int(hit[0]) if hit.size else None
 
 
+SETPOINTS_SKIPPED = "the scenario has setpoints"
+"""What a method that does not track setpoints cannot do on a scenario that has them."""
+
+
 def check_methods(methods: list[str] | None, setpoints: bool = False) -> list[str]:
-    """The methods to run, checked; ValueError naming an unknown one, or one that does not track the
-    scenario's ``setpoints``. By default all of them, or with setpoints those that track them."""
+    """The methods to run, checked: by default all of them (with ``setpoints``, :func:`plan_runs`
+    leaves out those that do not track them, and names them). ValueError naming an unknown method,
+    one listed twice, or, with ``setpoints``, one listed that does not track them."""
     if not methods:
-        return list(SETPOINT_METHODS if setpoints else METHOD_NAMES)
+        return list(METHOD_NAMES)
     for name in methods:
-        method_spec(name)
-        if setpoints and name not in SETPOINT_METHODS:
-            raise ValueError(f"the method '{name}' does not track setpoints, and the scenario has them (methods that "
-                             f"do: {', '.join(SETPOINT_METHODS)})")
+        if setpoints:
+            require(name, "tracks_setpoints", SETPOINTS_SKIPPED)
+        else:
+            method_spec(name)
     if len(set(methods)) != len(methods):
         raise ValueError(f"a method is listed twice: {', '.join(methods)}")
     return list(methods)
@@ -103,23 +117,29 @@ def check_triggers(triggers: list[str] | None, scenario) -> list[str]:
     return chosen
 
 
-def plan_runs(methods: list[str], triggers: list[str]) -> tuple[list[tuple[str, str]], dict[str, str]]:
-    """Each method with each trigger: the (method, trigger) pairs to run, in that order, and the
-    names of the pairs left out with the reason (the event trigger works with some methods only)."""
+def plan_runs(methods: list[str], triggers: list[str],
+              setpoints: bool = False) -> tuple[list[tuple[str, str]], dict[str, str]]:
+    """Each of the ``methods`` with each of the ``triggers``: the (method, trigger) pairs to run, in
+    that order, and the names of the pairs left out with the reason: with ``setpoints`` (the
+    scenario has some), a method that does not track them; a trigger other than ``always`` with a
+    method that does not support it."""
     runs, skipped = [], {}
     for method in methods:
+        untracked = lacks(method, "tracks_setpoints", SETPOINTS_SKIPPED) if setpoints else None
         for trigger in triggers:
-            if trigger == ALWAYS or method in TRIGGER_METHODS:
+            error = untracked or (None if trigger == ALWAYS else lacks(method, "supports_trigger"))
+            if error is None:
                 runs.append((method, trigger))
             else:
-                skipped[run_label(method, trigger)] = (f"the {trigger} trigger works with "
-                                                       f"{' and '.join(TRIGGER_METHODS)} only")
+                skipped[run_label(method, trigger)] = str(error)
     return runs, skipped
 
 
-def runnable(methods: list[str], triggers: list[str]) -> tuple[list[tuple[str, str]], dict[str, str]]:
-    """:func:`plan_runs`; ValueError when it leaves nothing to run."""
-    runs, skipped = plan_runs(methods, triggers)
+def runnable(methods: list[str], triggers: list[str],
+             setpoints: bool = False) -> tuple[list[tuple[str, str]], dict[str, str]]:
+    """:func:`plan_runs` of ``methods``, ``triggers`` and ``setpoints``; ValueError when it leaves
+    nothing to run."""
+    runs, skipped = plan_runs(methods, triggers, setpoints)
     if not runs:
         raise ValueError(f"none of the methods {', '.join(methods)} works with the trigger "
                          f"{' or '.join(triggers)} ({'; '.join(sorted(set(skipped.values())))})")
@@ -146,7 +166,8 @@ class TimedRecorder(RunRecorder):
 
 @dataclass
 class TimedRun:
-    """A run recorded in this process: its summary, failure ("" if none) and step times (s)."""
+    """A run recorded in this process: its summary, failure ("" if none) and step_times (s, one
+    per step after the first)."""
 
     summary: dict
     failure: str
@@ -158,7 +179,8 @@ class TimedRun:
 
 
 def timed_run(prepared, run_dir: Path, show_progress: bool = False) -> TimedRun:
-    """Run ``prepared`` in this process into the run folder ``run_dir``, timing its steps."""
+    """Run ``prepared`` in this process into the run folder ``run_dir``, timing its steps
+    (``show_progress``: a progress bar)."""
     recorder = TimedRecorder(run_dir, prepared, show_progress=show_progress)
     with recorder:
         summary, failure = record_run(prepared, recorder)
@@ -172,17 +194,29 @@ def with_options(scenario, **options):
 
 # ----------------------------------------------------------------------------- entries
 def check_out(out: Path, methods: list[str]) -> None:
-    """Create DIR; RunFolderError if it already holds a comparison or a run of one of the methods."""
+    """Create the comparison folder ``out``; RunFolderError if it already holds a comparison or a
+    run of one of the ``methods`` (their entry names)."""
     claim_folder(out, COMPARISON, "a comparison")
     for name in methods:
         refuse_used(out / name, STEP_LOG, "a run")
 
 
-def method_entry(run_dir: Path, out: Path, summary: dict) -> dict:
-    """The comparison.json entry of one method's run folder."""
+def tracking_cost(arrays, system: CoupledSystem) -> float:
+    """sum_k l(x(k) - x_r(k), u(k) - u_r(k)) over the run's steps, around the references x_r, u_r
+    (the targets of the requests) of ``trajectory.npz``'s ``arrays``, with the weights of ``system``."""
+    u = arrays["u"]
+    dx, du = arrays["x"][: u.shape[0]] - arrays["reference"], u - arrays["reference_u"]
+    return float(sum(stage_cost(system, dx[k], du[k]) for k in range(u.shape[0])))
+
+
+def method_entry(run_dir: Path, out: Path, summary: dict, system: CoupledSystem | None = None) -> dict:
+    """The comparison.json entry of one method's run folder ``run_dir`` (inside the comparison
+    folder ``out``) from its ``summary``; with ``system`` (a scenario with setpoints), also its
+    ``tracking_cost``."""
     arrays = np.load(run_dir / TRAJECTORY)
     x = arrays["x"]
     target = arrays["target"][-1] if "target" in arrays.files and arrays["target"].shape[0] else None
+    tracked = {} if system is None else {"tracking_cost": tracking_cost(arrays, system)}
     return {
         "run_dir": str(run_dir.relative_to(out)),
         "closed_loop_cost": float(summary["closed_loop_cost"]),
@@ -194,12 +228,14 @@ def method_entry(run_dir: Path, out: Path, summary: dict) -> dict:
         "solve_time_median_s": summary.get("solve_time_median_s"),
         "verdict": summary.get("verdict"),
         "failures": list(dict.fromkeys(f["kind"] for f in summary.get("failures", []))),
+        **tracked,
     }
 
 
 def trigger_entry(summary: dict, method: str, trigger: str, trigger_cost, step_time_s: float | None) -> dict:
     """What a comparison with triggers adds to an entry: what the agents solved, kept and sent
-    (``summary.json``), and the step time measured in this process."""
+    (the run's ``summary``), its ``method``, ``trigger`` and ``trigger_cost`` (kept only for a
+    trigger other than ``always``), and the step time measured in this process, ``step_time_s``."""
     messages = summary.get("messages") or {}
     sent = bool(messages)
     return {
@@ -212,7 +248,7 @@ def trigger_entry(summary: dict, method: str, trigger: str, trigger_cost, step_t
     }
 
 
-def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
+def compare(scenario, out: Path, methods: list[str] | None, show_progress: bool = True,
             on_method: Callable[[str, dict], None] | None = None, triggers: list[str] | None = None) -> dict:
     """Run each method (with each trigger) in this process and write ``comparison.json``; returns its content.
 
@@ -223,8 +259,10 @@ def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
         is replaced by each method's (trigger's).
     out : Path
         The comparison folder (created).
-    methods : list of str
-        Checked with :func:`check_methods` (for a scenario with setpoints, those that track them).
+    methods : list of str or None
+        Checked with :func:`check_methods`. None (or empty): every method, and on a scenario with
+        setpoints those that do not track them are left out and named (``skipped``); a method
+        listed that does not track them is refused.
     show_progress : bool
         A progress bar per run.
     on_method : callable (name, entry), optional
@@ -234,9 +272,10 @@ def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
         scenario's own. With triggers given, or the scenario's own ``event``, the entries carry
         the trigger's figures (:func:`trigger_entry`).
     """
-    check_methods(methods, setpoints=bool(scenario.setpoints))
+    setpoints = bool(scenario.setpoints)
+    methods = check_methods(methods, setpoints)
     chosen = check_triggers(triggers, scenario)
-    runs, skipped = runnable(methods, chosen)
+    runs, skipped = runnable(methods, chosen, setpoints)
     with_triggers = triggers is not None or chosen != [ALWAYS]
     check_out(out, [run_label(m, t) for m, t in runs])
     design_data = None
@@ -246,7 +285,7 @@ def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
         prepared = prepare(with_options(scenario, method=method, trigger=trigger), design_data=design_data)
         design_data = design_data or prepared.design_json()
         run = timed_run(prepared, out / label, show_progress)
-        entries[label] = method_entry(out / label, out, run.summary)
+        entries[label] = method_entry(out / label, out, run.summary, prepared.system if setpoints else None)
         if with_triggers:
             entries[label].update(trigger_entry(run.summary, method, trigger, scenario.options.trigger_cost,
                                                 run.step_time_median_s))
@@ -254,23 +293,31 @@ def compare(scenario, out: Path, methods: list[str], show_progress: bool = True,
             on_method(label, entries[label])
     data: dict = {"scenario": scenario.name, "methods": entries}
     if with_triggers:
-        data.update(triggers=chosen, skipped=skipped)
+        data["triggers"] = chosen
+    if with_triggers or setpoints:
+        data["skipped"] = skipped
     write_json(out / COMPARISON, data)
     return data
 
 
 # ----------------------------------------------------------------------------- the table
-def cost_ratios(data: dict, reference: str = "centralized") -> dict[str, float | None]:
-    """closed-loop cost / the reference method's, per method (None without the reference)."""
+def cost_ratios(data: dict, reference: str = "centralized", key: str = "closed_loop_cost") -> dict[str, float | None]:
+    """closed-loop cost (or another cost of the entries, ``key``) / the ``reference`` method's, per
+    method of the comparison ``data`` (None without the reference)."""
     ref = data["methods"].get(reference)
-    if ref is None or not ref["closed_loop_cost"]:
+    if ref is None or not ref.get(key):
         return {m: None for m in data["methods"]}
-    return {m: e["closed_loop_cost"] / ref["closed_loop_cost"] for m, e in data["methods"].items()}
+    return {m: e[key] / ref[key] if key in e else None for m, e in data["methods"].items()}
+
+
+def has_tracking(data: dict) -> bool:
+    """Whether the comparison ``data`` ran on setpoints (its entries carry ``tracking_cost``)."""
+    return any("tracking_cost" in e for e in data["methods"].values())
 
 
 def always_ratios(data: dict) -> dict[str, float | None]:
-    """closed-loop cost / the same method's with the trigger ``always``, per entry (None for the
-    ``always`` entries themselves and where that run is missing)."""
+    """closed-loop cost / the same method's with the trigger ``always``, per entry of the comparison
+    ``data`` (None for the ``always`` entries themselves and where that run is missing)."""
     methods = data["methods"]
     ratios: dict[str, float | None] = {}
     for name, e in methods.items():
@@ -280,14 +327,15 @@ def always_ratios(data: dict) -> dict[str, float | None]:
 
 
 def has_triggers(data: dict) -> bool:
-    """Whether the comparison ran with triggers (its entries carry the trigger's figures)."""
+    """Whether the comparison ``data`` ran with triggers (its entries carry the trigger's figures)."""
     return "triggers" in data
 
 
 def comparison_rows(data: dict) -> list[list[str]]:
-    """The comparison as table rows (strings), one per method, in the order run; with triggers,
-    also the columns of :data:`TRIGGER_HEADER`."""
+    """The comparison as table rows (strings), one per method, in the order run; with setpoints,
+    also the column of :data:`TRACKING_HEADER`; with triggers, also those of :data:`TRIGGER_HEADER`."""
     ratios = cost_ratios(data)
+    tracking = cost_ratios(data, key="tracking_cost") if has_tracking(data) else None
     more = trigger_cells(data) if has_triggers(data) else {}
     rows = []
     for method, e in data["methods"].items():
@@ -296,8 +344,9 @@ def comparison_rows(data: dict) -> list[list[str]]:
         verdict = e.get("verdict") or "-"
         if e.get("failures"):
             verdict = f"failed ({', '.join(e['failures'])})"
+        tracked = [] if tracking is None else ["-" if tracking[method] is None else number_text(tracking[method])]
         rows.append([method, verdict, "yes" if e["feasible"] else "no", str(e["fallbacks"]), number_text(e["closed_loop_cost"]),
-                     "-" if ratio is None else number_text(ratio),
+                     "-" if ratio is None else number_text(ratio), *tracked,
                      "never" if e["steps_to_1e-3"] is None else str(e["steps_to_1e-3"]),
                      "-" if solve is None else f"{solve * 1e6:.0f}", *more.get(method, [])])
     return rows
@@ -321,13 +370,20 @@ def trigger_cells(data: dict) -> dict[str, list[str]]:
 
 
 def comparison_header(data: dict) -> list[str]:
-    """The table's columns: :data:`COMPARISON_HEADER`, and with triggers :data:`TRIGGER_HEADER` too."""
-    return COMPARISON_HEADER + (TRIGGER_HEADER if has_triggers(data) else [])
+    """The table's columns: :data:`COMPARISON_HEADER`, with setpoints :data:`TRACKING_HEADER` after
+    its ``/ central``, and with triggers :data:`TRIGGER_HEADER` at the end."""
+    header = list(COMPARISON_HEADER)
+    if has_tracking(data):
+        at = header.index("/ central") + 1
+        header[at:at] = TRACKING_HEADER
+    return header + (TRIGGER_HEADER if has_triggers(data) else [])
 
 
 def comparison_legend(data: dict) -> str:
-    """What the columns mean (:data:`COMPARISON_LEGEND`, and with triggers :data:`TRIGGER_LEGEND`)."""
-    return COMPARISON_LEGEND + (f"; {TRIGGER_LEGEND}" if has_triggers(data) else "")
+    """What the columns mean (:data:`COMPARISON_LEGEND`, with setpoints :data:`TRACKING_LEGEND`, with
+    triggers :data:`TRIGGER_LEGEND`)."""
+    return (COMPARISON_LEGEND + (f"; {TRACKING_LEGEND}" if has_tracking(data) else "")
+            + (f"; {TRIGGER_LEGEND}" if has_triggers(data) else ""))
 
 
 COMPARISON_HEADER = ["method", "verdict", "feasible", "fallbacks", "cost", "/ central", "k to 1e-3", "QP us"]
@@ -335,6 +391,10 @@ COMPARISON_LEGEND = ("verdict: ok, or the failures found (see each run's summary
                      "cost: closed-loop sum of x'Qx + u'Ru (around the targets applied, with setpoints); / central: "
                      "that cost over the centralised one; k to 1e-3: first k with ||x(k) - x_s||_inf < 1e-3 (x_s the "
                      "last target, the origin without setpoints); QP us: median solve time")
+TRACKING_HEADER = ["tracking / central"]
+TRACKING_LEGEND = ("tracking / central: sum of ||x - x_r||_Q^2 + ||u - u_r||_R^2 around the references (the targets of "
+                   "the requests, the same for every method) over the centralised one's; the cost column is around "
+                   "each method's own applied targets, which its reference governor may hold back longer")
 TRIGGER_HEADER = ["/ always", "solves", "kept", "plans", "kB", "step ms"]
 TRIGGER_LEGEND = ("/ always: the cost over the same method's with the trigger always; solves: QP solves whose plans "
                   "reached the coordinator; kept: plans kept instead; plans: plan messages; kB: bytes of the agents' "

@@ -39,7 +39,9 @@ ROA_PLOT = "roa.png"
 
 @dataclass(frozen=True)
 class SampleOutcome:
-    """One closed-loop run from one initial state."""
+    """One closed-loop run from one initial state: whether the QPs of step 0 were solved
+    (``feasible_k0``), whether the state ``converged`` to the origin, and whether it did with every
+    QP solved at every step (``always_feasible``)."""
 
     feasible_k0: bool
     converged: bool
@@ -52,13 +54,14 @@ def sample_states(n: int, samples: int, box: float, seed: int) -> np.ndarray:
 
 
 def default_box(x0: np.ndarray) -> float:
-    """The largest |entry| of the scenario's initial state (1 if it is the origin)."""
+    """The largest |entry| of the scenario's initial state x0 (1 if it is the origin)."""
     scale = float(np.max(np.abs(x0))) if x0.size else 0.0
     return scale if scale > 0 else 1.0
 
 
 class Outcome:
-    """Collects one run's step records into a SampleOutcome, and tells the loop when to stop."""
+    """Collects one run's step records into a SampleOutcome, and tells the loop when to stop: the run
+    has converged when ||x||_inf < ``tol``, diverged beyond DIVERGED times the sampling ``box``."""
 
     def __init__(self, box: float, tol: float = CONVERGED) -> None:
         self.tol = tol
@@ -78,6 +81,7 @@ class Outcome:
         self.diverged = not np.isfinite(size) or size > self.limit
 
     def stop(self, record) -> bool:
+        """Whether the run may stop after the step ``record``: it has converged or diverged."""
         return self.converged or self.diverged
 
     def result(self) -> SampleOutcome:
@@ -95,7 +99,8 @@ def _failed(record) -> bool:
 
 
 def horizon_loop(scenario, method: str, N: int, design_data: dict):
-    """(loop, steps) for one method and horizon N: a DirectLoop or CentralLoop set up once.
+    """(loop, steps) for one ``method`` of the ``scenario`` and horizon N: a DirectLoop or CentralLoop
+    set up once.
 
     ``design_data`` (``design.json`` content) is reused, so the gains and X^f are not recomputed.
     """
@@ -111,7 +116,9 @@ def horizon_loop(scenario, method: str, N: int, design_data: dict):
 
 def run_samples(loop, steps: int, states: np.ndarray, box: float,
                 advance: Callable[[], None] | None = None) -> list[SampleOutcome]:
-    """Every sample through one loop (DirectLoop or CentralLoop), in order."""
+    """Every sample through one ``loop`` (DirectLoop or CentralLoop), in order: from each initial state
+    of ``states`` (samples, n), at most ``steps`` steps, judged against the sampling ``box``;
+    ``advance`` is called after each sample (progress)."""
     out = []
     for x0 in states:
         outcome = Outcome(box)
@@ -170,12 +177,13 @@ ROA_COLUMNS = (("feasible_k0", "feasible at k=0 %"), ("converged", "converged %"
 
 
 def roa_header(data: dict) -> list[str]:
-    """Columns of the long table: method, N, then one per criterion."""
+    """Columns of the long table of the region of attraction ``data`` (roa.json): method, N, then one
+    per criterion."""
     return ["method", "N"] + [title for _, title in ROA_COLUMNS]
 
 
 def roa_rows(data: dict) -> list[list[str]]:
-    """The long table: one row per method and horizon, percentages."""
+    """The long table of ``data`` (roa.json): one row per method and horizon, percentages."""
     rows = []
     for method, per_N in data["methods"].items():
         for N in data["horizons"]:
@@ -189,7 +197,8 @@ ROA_LEGEND = ("feasible at k=0: every QP of the first step solved; converged: ||
 
 
 def roa_markdown(data: dict) -> str:
-    """One Markdown table per criterion: methods as rows, horizons as columns (percent)."""
+    """One Markdown table per criterion of ``data`` (roa.json): methods as rows, horizons as columns
+    (percent)."""
     out = []
     for key, title in ROA_COLUMNS:
         header = [f"{title.rstrip(' %')} (%)"] + [f"N = {N}" for N in data["horizons"]]
@@ -202,7 +211,8 @@ def roa_markdown(data: dict) -> str:
 
 
 def plot_roa(data: dict, path: Path) -> Path:
-    """Fractions feasible at k = 0, converged and always feasible against N, one line per method."""
+    """Fractions feasible at k = 0, converged and always feasible against N, one line per method, from
+    ``data`` (roa.json), drawn to ``path``; returns it."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -15,16 +15,20 @@ scenario's beta(0).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dmpc.core.system import CoupledSystem
 from dmpc.offline import ControllerDesign
 
+if TYPE_CHECKING:
+    from dmpc.core.central_qp import CentralQP
+
 
 @dataclass(frozen=True)
 class InitialBox:
-    """alpha(0) (n,), beta(0), and whether the optimisation succeeded (else the design's box)."""
+    """alpha(0) (n,), beta(0), and whether the optimisation succeeded (``optimized``; else the design's box)."""
 
     alpha: np.ndarray
     beta: float
@@ -43,7 +47,7 @@ class BoxOptimizer:
     def __init__(self, system: CoupledSystem, design: ControllerDesign) -> None:
         self._design = design
         self._system = system
-        self._qp = None
+        self._qp: CentralQP | None = None
 
     def __call__(self, x0: np.ndarray) -> InitialBox:
         from dmpc.core.central_qp import CentralQP  # lazy: agent processes never need it

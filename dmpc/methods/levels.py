@@ -27,7 +27,8 @@ from dmpc.core.system import CoupledSystem, block_diag
 
 
 def dual_norms(omega: np.ndarray, system: CoupledSystem, P: list[np.ndarray]) -> np.ndarray:
-    """||Omega_{l,i}||_{P_i^-1} = sqrt(Omega_{l,i} P_i^-1 Omega_{l,i}'), shape (rows, M)."""
+    """||Omega_{l,i}||_{P_i^-1} = sqrt(Omega_{l,i} P_i^-1 Omega_{l,i}'), shape (rows, M), of the rows of
+    ``omega`` (rows, n) split by the subsystems of ``system``, with each subsystem's P_i from ``P``."""
     out = np.zeros((omega.shape[0], system.M))
     for i in range(system.M):
         W = omega[:, system.xs(i)]
@@ -36,7 +37,8 @@ def dual_norms(omega: np.ndarray, system: CoupledSystem, P: list[np.ndarray]) ->
 
 
 def static_level(omega: np.ndarray, system: CoupledSystem, P: list[np.ndarray]) -> float:
-    """The common level r = min_l 1 / (sum_i ||Omega_{l,i}||_{P_i^-1})^2 (product inside X^f)."""
+    """The common level r = min_l 1 / (sum_i ||Omega_{l,i}||_{P_i^-1})^2 (product inside X^f), from
+    ``omega`` (rows, n), the subsystems of ``system`` and their P_i in ``P``."""
     return float(np.min(1.0 / dual_norms(omega, system, P).sum(axis=1) ** 2))
 
 
@@ -53,7 +55,8 @@ def containment(levels: np.ndarray, norms: np.ndarray) -> float:
 
 
 def fit_levels(levels: np.ndarray, norms: np.ndarray) -> tuple[np.ndarray, bool]:
-    """The levels, scaled down by one common factor if their product leaves X^f.
+    """The ``levels`` (M,), scaled down by one common factor if their product leaves X^f, whose rows'
+    :func:`dual_norms` are ``norms`` (rows, M).
 
     Returns
     -------

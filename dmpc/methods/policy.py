@@ -67,7 +67,7 @@ class TerminalPolicy(ABC):
 
     @abstractmethod
     def update(self, state: TerminalState, eta: np.ndarray, scale: float = 1.0) -> TerminalState:
-        """The parameters of step k+1 from those of step k and the terminal states eta (n,).
+        """The parameters of step k+1 from those of step k (``state``) and the terminal states eta (n,).
 
         With a setpoint target, eta is taken around the target of step k+1 and ``scale`` is that
         target's lambda: the terminal set is lambda X^f around it (dmpc.tracking.targets).
@@ -75,16 +75,17 @@ class TerminalPolicy(ABC):
 
     @abstractmethod
     def release(self, state: TerminalState, i: int) -> tuple[np.ndarray, float]:
-        """The (centre (n_i,), size) released to agent i."""
+        """The (centre (n_i,), size) released to agent i at the terminal parameters ``state``."""
 
     def release_all(self, state: TerminalState) -> tuple[np.ndarray, np.ndarray]:
-        """Every agent's release at once: centres (n,), agent i's on its own coordinates, and sizes (M,)."""
+        """Every agent's release at once at ``state``: centres (n,), agent i's on its own coordinates,
+        and sizes (M,)."""
         parts = [self.release(state, i) for i in range(self.system.M)]
         return np.concatenate([c for c, _ in parts]), np.array([size for _, size in parts], dtype=float)
 
     @abstractmethod
     def fallback_terminal(self, state: TerminalState, i: int, candidate_end: np.ndarray) -> np.ndarray:
-        """eta_i for an agent that fell back; ``candidate_end`` (n_i,) ends its shifted candidate."""
+        """eta_i for agent i that fell back at ``state``; ``candidate_end`` (n_i,) ends its shifted candidate."""
 
     def joint_terminal(self, state: TerminalState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The agents' terminal sets stacked on the global state: T (r, n), lower (r,), upper (r,)."""
@@ -100,7 +101,7 @@ class TerminalPolicy(ABC):
 
 
 class BoxPolicy(TerminalPolicy):
-    """Terminal boxes ||z_i(N) - alpha_i||_inf <= beta.
+    """Terminal boxes ||z_i(N) - alpha_i||_inf <= beta, of the method ``name`` on ``system`` and ``design``.
 
     ``time_varying``: alpha(k+1) = (A+BK) eta, beta(k+1) = sigma(alpha(k+1)) (the paper's
     Theorem 1). Otherwise alpha and beta keep their values at k = 0.
@@ -167,6 +168,11 @@ class EllipsoidPolicy(TerminalPolicy):
 
     Parameters
     ----------
+    system : CoupledSystem
+    design : ControllerDesign
+    name : str
+        The method's name (``ellipsoid`` or ``ellipsoid-adaptive``).
+    adaptive : bool
     facets : int
         Sides of the polygon inscribed in each two-dimensional ellipse.
     """
@@ -193,18 +199,25 @@ class EllipsoidPolicy(TerminalPolicy):
         return TerminalState(np.zeros(self.system.n), float("nan"), np.full(self.system.M, self.level0))
 
     def update(self, state: TerminalState, eta: np.ndarray, scale: float = 1.0) -> TerminalState:
-        if not self.adaptive:
-            return TerminalState(state.alpha.copy(), state.beta, state.r.copy())
-        raw = state.r + np.array([eta @ G @ eta for G in self._gamma])
+        if not self.adaptive or self._gamma is None:  # the increments Gamma_i exist exactly when adaptive
+            return TerminalState(state.alpha.copy(), state.beta, _levels(state).copy())
+        raw = _levels(state) + np.array([eta @ G @ eta for G in self._gamma])
         levels, scaled = fit_levels(raw, self._norms)
         note = "levels scaled back into X^f" if scaled else ""
         return TerminalState(state.alpha.copy(), state.beta, levels, note)
 
     def release(self, state: TerminalState, i: int) -> tuple[np.ndarray, float]:
-        return np.zeros(self.system.subsystems[i].n), float(state.r[i])
+        return np.zeros(self.system.subsystems[i].n), float(_levels(state)[i])
 
     def release_all(self, state: TerminalState) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(self.system.n), np.array(state.r, dtype=float)
 
     def fallback_terminal(self, state: TerminalState, i: int, candidate_end: np.ndarray) -> np.ndarray:
         return np.asarray(candidate_end, float).copy()
+
+
+def _levels(state: TerminalState) -> np.ndarray:
+    """The ellipsoid levels r (M,) of a state that :class:`EllipsoidPolicy` made."""
+    if state.r is None:
+        raise ValueError("an ellipsoid method's terminal state has levels r; this one has none (a box method's?)")
+    return state.r

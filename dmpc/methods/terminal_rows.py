@@ -28,7 +28,8 @@ class AgentTerminal(ABC):
 
 
 class BoxTerminal(AgentTerminal):
-    """|z(N) - alpha_i| <= beta - m_f elementwise (m_f: the tube's terminal margin, shape (n_i,))."""
+    """|z(N) - alpha_i| <= beta - m_f elementwise, on the n = n_i states of the agent (m_f: ``margin``,
+    the tube's terminal margin, shape (n_i,))."""
 
     def __init__(self, n: int, margin: np.ndarray) -> None:
         self.T = np.eye(n)

@@ -76,7 +76,8 @@ class ControllerDesign:
 
 def design_gains(system: CoupledSystem, gains: str,
                  given: tuple[list[np.ndarray], list[np.ndarray]] | None = None) -> tuple[GainDesign, TerminalSet]:
-    """The gains (``lmi``, ``lqr`` or ``given``, verified) and the terminal set X^f they give."""
+    """The gains of ``system`` by the method ``gains`` (``lmi``, ``lqr`` or ``given``: K_i and P_i in
+    ``given``, verified) and the terminal set X^f they give."""
     if gains == "lmi":
         g = lmi_gains(system)
     elif gains == "lqr":
@@ -93,7 +94,9 @@ def design_gains(system: CoupledSystem, gains: str,
 def assemble(system: CoupledSystem, gains: GainDesign, terminal: TerminalSet, *, horizon: int, alpha0: np.ndarray,
              beta0: float, tube: str = "none", revision_bounds: dict[int, RevisionBound] | None = None,
              disturbance_bounds: dict[int, np.ndarray] | None = None) -> ControllerDesign:
-    """A ControllerDesign from its gains and terminal set at one horizon (checks beta0 and the tubes).
+    """A ControllerDesign of ``system`` from its gains and terminal set at one horizon (checks beta0
+    and the tubes), with the terminal box's start ``alpha0`` (n,), ``beta0``; ``revision_bounds``
+    (per subsystem index) bound the neighbours' plan revisions for the tube of ``tube: robust``.
 
     ``disturbance_bounds``: per subsystem index, the bound (n_i,) of an additive plant
     disturbance, added to the tube's W_i when ``tube`` is ``robust``.
@@ -125,7 +128,9 @@ def design_system(system: CoupledSystem, *, gains: str, horizon: int, alpha0: np
 def design_from_json(system: CoupledSystem, data: dict, *, horizon: int, alpha0: np.ndarray, beta0: float,
                      tube: str = "none", revision_bounds: dict[int, RevisionBound] | None = None,
                      disturbance_bounds: dict[int, np.ndarray] | None = None, verify: bool = True) -> ControllerDesign:
-    """Rebuild a design from ``design.json`` content without re-solving the LMI or the LPs.
+    """Rebuild a design of ``system`` from ``design.json`` content ``data`` without re-solving the
+    LMI or the LPs, at ``horizon`` with ``alpha0``, ``beta0``, ``tube``, ``revision_bounds`` and
+    ``disturbance_bounds`` as :func:`assemble` takes them.
 
     The gains are verified again, the tubes recomputed; DesignError if the file does not fit the
     system. ``verify=False`` takes the gains' figures (rho, the margin of (10)) from the file

@@ -135,7 +135,8 @@ def spectral_radius(M: np.ndarray) -> float:
 
 
 def lyapunov_figures(system: CoupledSystem, K: list[np.ndarray], P: list[np.ndarray]) -> LyapunovFigures:
-    """rho(A+BK) and the check value of (10) with its tolerance; K (m_i, n_i) and P (n_i, n_i) per subsystem."""
+    """rho(A+BK) and the check value of (10) with its tolerance, on ``system``; K (m_i, n_i) and
+    P (n_i, n_i) per subsystem."""
     Kg = block_diag(*K)
     Pg = block_diag(*P)
     AK = system.A + system.B @ Kg
@@ -217,7 +218,7 @@ def lqr_gains(system: CoupledSystem) -> GainDesign:
 
 
 def lmi_gains(system: CoupledSystem) -> GainDesign:
-    """Solve LMI (11) with block-diagonal X and Y, maximising log det X.
+    """Solve LMI (11) of ``system`` with block-diagonal X and Y, maximising log det X.
 
     Each (A_ii, B_ii) is checked for stabilisability first. The LMI is imposed with Q + s I in
     place of Q, s = LMI_STRICTNESS lambda_max(Q); if the check value of (10) is still within one
@@ -361,10 +362,11 @@ def _solve_lmi(system: CoupledSystem, scaling: list[np.ndarray] | None, objectiv
         log.info("LMI (11), %s solve: %s: %s", objective, w.category.__name__, w.message)
     if sol.status == "solver_error":
         raise _LmiFailure("Clarabel stopped without a solution", size)
-    if sol.status not in ("optimal", "optimal_inaccurate"):
+    X, Y = sol.X, sol.Y
+    if sol.status not in ("optimal", "optimal_inaccurate") or X is None or Y is None:  # None exactly then
         raise _LmiFailure(f"solver status {sol.status}", size)
-    Xv = [scaling[i][:, None] * sol.X[i] * scaling[i][None, :] for i in range(len(subs))]
-    Yv = [sol.Y[i] * scaling[i][None, :] for i in range(len(subs))]
+    Xv = [scaling[i][:, None] * X[i] * scaling[i][None, :] for i in range(len(subs))]
+    Yv = [Y[i] * scaling[i][None, :] for i in range(len(subs))]
     return _LmiSolution(Xv, Yv, sol.status == "optimal_inaccurate")
 
 

@@ -36,7 +36,7 @@ MIN_MARGIN = 2
 
 
 def auto_beta0(terminal: TerminalSet, alpha0: np.ndarray) -> float:
-    """BETA0_FRACTION * sigma(alpha0); DesignError if alpha0 is not inside X^f."""
+    """BETA0_FRACTION * sigma(alpha0) of the ``terminal`` set X^f; DesignError if alpha0 is not inside it."""
     sigma0 = terminal.sigma(alpha0)
     if not sigma0 > 0:
         raise DesignError(f"terminal: beta0 auto: alpha0 is not inside X^f (sigma(alpha0) = {sigma0:.4g}); move alpha0")
@@ -44,7 +44,7 @@ def auto_beta0(terminal: TerminalSet, alpha0: np.ndarray) -> float:
 
 
 def horizon_margin(n_min: int) -> int:
-    """Steps added to the smallest feasible horizon by ``horizon: auto``."""
+    """Steps added to the smallest feasible horizon ``n_min`` by ``horizon: auto``."""
     return max(MIN_MARGIN, math.ceil(MARGIN_FRACTION * n_min))
 
 
@@ -62,7 +62,8 @@ class StartProblem(Protocol):
         ...
 
     def terminal_rows(self, design: ControllerDesign) -> LinearSet:
-        """The method's terminal constraint at k = 0 on the global state (rows on z(N), dimension n)."""
+        """The method's terminal constraint at k = 0 on the global state (rows on z(N), dimension n),
+        with the terminal set of ``design``."""
         ...
 
     def distributed_plans(self, design: ControllerDesign) -> bool:
@@ -101,6 +102,7 @@ class StartCheck:
         self._terminal_rows: LinearSet | None = None
 
     def design(self, N: int) -> ControllerDesign:
+        """The design at horizon N, unchecked."""
         return self._make(N)
 
     def central_feasible(self, N: int) -> bool | None:
@@ -114,6 +116,7 @@ class StartCheck:
         return smallest_feasible_horizon(lambda N: bool(self.central_feasible(N)), cap)
 
     def dmpc_feasible(self, N: int) -> bool:
+        """Whether the distributed k = 0 step finds a plan for every agent at horizon N."""
         return self.start.distributed_plans(self._make(N))
 
     def search(self) -> "HorizonSearch":
@@ -160,7 +163,7 @@ class StartCheck:
             raise DesignError(f"horizon: auto: no horizon up to N = {HORIZON_CAP} makes the start x(0) feasible "
                               "for the centralised problem: the start is too far out for the constraints (move x0, "
                               f"widen U_i or X_i, or check the model){anyway}")
-        if found.distributed is None:
+        if found.distributed is None or found.chosen is None:  # chosen is None exactly when distributed is
             raise DesignError(f"horizon: auto: the start is centrally feasible from N = {found.central}, but the "
                               f"distributed k = 0 step finds no plan for every agent up to N = {HORIZON_CAP}{anyway}")
         return self._make(found.chosen).with_start({

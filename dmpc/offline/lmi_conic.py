@@ -85,8 +85,8 @@ class _Builder:
             self.vals.append(-scale * coef)
         dim = size * (size + 1) // 2
         b = np.zeros(dim)
-        for r, c, value in constants:
-            index, scale = place(np.asarray(r), np.asarray(c))
+        for row, col, value in constants:
+            index, scale = place(np.asarray(row), np.asarray(col))
             b[index] += scale * value
         self.b.append(b)
         self.cones.append(clarabel.PSDTriangleConeT(size))

@@ -78,7 +78,7 @@ class Design:
 
     @classmethod
     def from_json(cls, data: dict, names: list[str] | None = None) -> "Design":
-        """Read ``design.json`` content; ``names`` default to "1".."M"."""
+        """Read ``design.json`` content ``data``; ``names`` default to "1".."M"."""
         K = [np.asarray(k, float) for k in data["K"]]
         P = [np.asarray(p, float) for p in data["P"]]
         names = list(names) if names is not None else [str(i + 1) for i in range(len(K))]

@@ -43,7 +43,7 @@ def stuck_modes(A: np.ndarray, B: np.ndarray) -> list[StuckMode]:
     """The modes of A (n, n) with |lambda| >= 1 that fail the PBH rank test with B (n, m)."""
     n = A.shape[0]
     scale = max(1.0, float(np.linalg.norm(np.hstack([A, B]), 2)))
-    stuck = []
+    stuck: list[StuckMode] = []
     for lam in np.linalg.eigvals(A):
         if abs(lam) < 1.0:
             continue

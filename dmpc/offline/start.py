@@ -25,7 +25,7 @@ _FEASIBLE, _INFEASIBLE = 0, 2  # scipy.optimize.linprog statuses
 
 
 def start_feasible(system: CoupledSystem, x0: np.ndarray, horizon: int, terminal: LinearSet) -> bool | None:
-    """Whether x0 (n,) admits a plan of ``horizon`` steps inside U, X and the terminal set
+    """Whether x0 (n,) admits a plan of ``system`` of ``horizon`` steps inside U, X and the terminal set
     (``terminal``: rows on the global state z(N), dimension n).
 
     Returns
@@ -44,6 +44,7 @@ def start_feasible(system: CoupledSystem, x0: np.ndarray, horizon: int, terminal
     b_eq[:n] = A @ np.asarray(x0, float)
     rows, rhs = [], []
     inputs = stack_sets([s.input_set for s in system.subsystems], [s.m for s in system.subsystems], sparse=True)
+    assert inputs is not None  # every subsystem has an input set
     G, g = inputs.one_sided()
     rows.append(sp.hstack([sp.csr_matrix((N * G.shape[0], nz)), sp.kron(sp.eye(N), G)]))
     rhs.append(np.tile(g, N))

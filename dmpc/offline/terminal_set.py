@@ -65,11 +65,12 @@ class TerminalSet:
         return float(np.min((scale - omega @ alpha) / self.row_norms))
 
     def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
+        """Whether x (n,) lies in X^f, up to ``tol``."""
         return bool(np.all(self.omega @ x <= 1.0 + tol))
 
 
 def admissible_rows(system: CoupledSystem, K: list[np.ndarray]) -> sp.csr_matrix:
-    """Constraint rows of X and K x in U normalised to ``G x <= 1``, sparse, shape (q, n).
+    """Constraint rows of X and K x in U of ``system`` normalised to ``G x <= 1``, sparse, shape (q, n).
 
     Raises DesignError if the origin is not in the interior of a constraint set.
     """
@@ -101,7 +102,7 @@ def _normalised(G: np.ndarray, g: np.ndarray, what: str, K: np.ndarray | None = 
 
 
 def closed_loop(system: CoupledSystem, K: list[np.ndarray]) -> sp.csr_matrix:
-    """A_K = A + B diag(K_i), sparse, shape (n, n)."""
+    """A_K = A + B diag(K_i) of ``system`` with the gains K (K_i per subsystem), sparse, shape (n, n)."""
     return sp.csr_matrix(system.A) + sp.csr_matrix(system.B) @ sp.block_diag(K, format="csr")
 
 

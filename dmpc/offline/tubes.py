@@ -39,6 +39,7 @@ class Tightening:
 
     @classmethod
     def none(cls, n: int, r_u: int, r_x: int, N: int) -> "Tightening":
+        """No tightening: zeros for r_u input rows (N steps), r_x state rows (N + 1) and n terminal margins."""
         return cls(np.zeros((N, r_u)), np.zeros((N + 1, r_x)), np.zeros(n))
 
 
@@ -52,7 +53,8 @@ class RevisionBound:
 
 def disturbance_support(system: CoupledSystem, i: int, bounds: dict[int, RevisionBound],
                         additive: np.ndarray | None = None):
-    """Return h_W for subsystem i as a function of a direction d of shape (n_i,).
+    """Return h_W for subsystem i of ``system`` as a function of a direction d of shape (n_i,), from
+    the neighbours' revision ``bounds`` (per subsystem index).
 
     ``additive`` (shape (n_i,)) bounds an additive disturbance |w_i| <= additive on the plant.
     """
@@ -79,7 +81,8 @@ def disturbance_support(system: CoupledSystem, i: int, bounds: dict[int, Revisio
 
 def robust_tightening(system: CoupledSystem, i: int, K_i: np.ndarray, N: int,
                       bounds: dict[int, RevisionBound], additive: np.ndarray | None = None) -> Tightening:
-    """Support-function tightening of subsystem i's constraints over the horizon.
+    """Support-function tightening of subsystem i's constraints over the horizon N, for the
+    subsystem of ``system`` with gain K_i (m_i, n_i) and the neighbours' revision ``bounds``.
 
     ``additive`` (shape (n_i,)): the bound of an additive plant disturbance on subsystem i.
     Raises DesignError naming the set and step if a tightened set is empty.

@@ -64,7 +64,7 @@ MAX_PANELS = 8
 DPI = 120
 
 METHOD_ORDER = METHOD_NAMES
-METHOD_STYLE = {
+METHOD_STYLE: dict[str, dict[str, Any]] = {
     "tv-box": dict(color="C0", linestyle="-", marker="o"),
     "tv-box-opt": dict(color="C4", linestyle="-", marker="D"),
     "fixed-box": dict(color="C1", linestyle="--", marker="s"),
@@ -72,7 +72,7 @@ METHOD_STYLE = {
     "ellipsoid-adaptive": dict(color="C3", linestyle=":", marker="v"),
     "centralized": dict(color="black", linestyle=(0, (5, 1, 1, 1)), marker="x"),
 }
-EXTRA_STYLES = [dict(color=f"C{i}", linestyle="-", marker="d") for i in range(5, 10)]
+EXTRA_STYLES: list[dict[str, Any]] = [dict(color=f"C{i}", linestyle="-", marker="d") for i in range(5, 10)]
 
 
 class ReportError(InputError, ValueError):
@@ -246,6 +246,8 @@ def load_run(path, notes: list[str] | None = None) -> RunData:
         raise ReportError(f"{records.path}: the run completed no step: there is nothing to draw"
                           + (f" (it stopped: {stopped})" if stopped else ""))
     names = records.names
+    lower: list[np.ndarray | None]
+    upper: list[np.ndarray | None]
     if scenario is not None:
         bounds = [_input_bounds(s.input) for s in scenario.resolved_subsystems()]
         lower, upper = [b[0] for b in bounds], [b[1] for b in bounds]
@@ -438,7 +440,8 @@ def _time_norm(run: RunData, K1: int):
 # ----------------------------------------------------------------------------- figure 1
 @dataclass
 class PlaneSet:
-    """What figure 1 draws of one run: its boxes and/or ellipses, and its trajectory's look."""
+    """What figure 1 draws of one ``run``: its ``boxes`` and/or ``ellipses``, and its trajectory's look
+    (the ``method``'s ``color``, ``linestyle`` and ``marker``)."""
 
     run: RunData
     method: str
@@ -471,6 +474,8 @@ def _draw_boxes(ax, run: RunData, i: int, cmap, norm, label: str) -> bool:
 
 def _ellipse_levels(run: RunData, i: int) -> list[tuple[int, float]]:
     """(k, r_i(k)) to draw: one level when r_i is constant, every k otherwise."""
+    if run.r is None:
+        return []
     levels = run.r[:, i] if run.r.ndim == 2 else run.r
     finite = [(k, float(v)) for k, v in enumerate(levels) if np.isfinite(v) and v > 0]
     if finite and np.allclose([v for _, v in finite], finite[0][1], rtol=1e-9, atol=0):
@@ -690,7 +695,7 @@ def _series_figure(plt, series: list[tuple[str, np.ndarray, dict, str]], ylabel:
         y = positive(values) if log else values
         ax.plot(ref.times(len(y)), y, label=label, **_layered(style, index, len(series)))
     marked = changes is not None and changes.size > 0
-    if marked:
+    if changes is not None and marked:
         mark_changes(ax, ref.times(int(changes.max()) + 1)[changes])
     if log:
         ax.set_yscale("log")
@@ -722,6 +727,8 @@ def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path
         A run folder with ``trajectory.npz``.
     fig_dir : path-like, optional
         Where to write the PNG files; default ``run_dir/figures``.
+    notes : list of str, optional
+        Gets what the reader had to work around (:func:`load_run`).
 
     Returns
     -------

@@ -20,7 +20,8 @@ TRACKING = ("setpoint", "setpoint_u", "reference", "reference_u", "target", "tar
 
 
 def run_data(result) -> RunData:
-    """The figures' view of a Result (the arrays of its run folder, as ``dmpc report`` reads them)."""
+    """The figures' view of the Result ``result`` (the arrays of its run folder, as ``dmpc report``
+    reads them)."""
     names = list(result.names)
     states = [result.states[name] for name in names]
     inputs = [result.inputs[name] for name in names]
@@ -38,8 +39,8 @@ def run_data(result) -> RunData:
 
 
 def tracked_of(result) -> Tracked | None:
-    """The Result's setpoints and targets stacked over its subsystems (as trajectory.npz holds
-    them), or None when the run requested nothing."""
+    """The setpoints and targets of the Result ``result`` stacked over its subsystems (as trajectory.npz
+    holds them), or None when the run requested nothing."""
     names = list(result.names)
     mappings = {key: getattr(result, key) for key in TRACKING}
     if not all(all(name in mapping for name in names) for mapping in mappings.values()):
@@ -48,7 +49,8 @@ def tracked_of(result) -> Tracked | None:
 
 
 def plot_result(result, bounds: bool = True) -> dict:
-    """``{"states": Figure, "inputs": Figure, "cost": Figure}`` for a Result."""
+    """``{"states": Figure, "inputs": Figure, "cost": Figure}`` for the Result ``result``; ``bounds``:
+    the constraint bounds drawn as dashed lines."""
     import matplotlib
     import matplotlib.pyplot as plt
 

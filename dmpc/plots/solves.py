@@ -54,7 +54,8 @@ class Solves:
 
     @classmethod
     def of(cls, arrays: dict, summary: dict, trigger: str, method: str, steps: int, agents: int) -> "Solves":
-        """From the run's arrays (``kept``, ``fallback``, ``rounds``, each optional) and its summary."""
+        """From the run's ``arrays`` (``kept``, ``fallback``, ``rounds``, each optional) and its ``summary``,
+        of ``method`` with the ``trigger`` (``always`` or ``event``), ``steps`` steps and ``agents`` agents."""
         codes = np.full((steps, agents), SOLVED, dtype=np.int8)
         kept = _flags(arrays, "kept", steps, agents)
         if kept is not None:

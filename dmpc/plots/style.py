@@ -13,7 +13,8 @@ LOG_DECADES = 2.0
 
 def panel_grid(plt, panels: int, ncols: int, width: float, height: float, *, title: str = "",
                hidden: frozenset[int] | set[int] = frozenset(), sharex: bool = False, margin: float = 0.0):
-    """A figure with ``panels`` axes, ``ncols`` to a row, each about ``width`` x ``height`` inches.
+    """A figure with ``panels`` axes, ``ncols`` to a row, each about ``width`` x ``height`` inches,
+    drawn with ``plt`` (matplotlib.pyplot); ``sharex``: one x axis for all.
 
     Slots past ``panels`` and those in ``hidden`` are switched off. ``margin`` adds inches to the
     figure's width (room for the row labels); a title adds a line of height.
@@ -36,8 +37,8 @@ def panel_grid(plt, panels: int, ncols: int, width: float, height: float, *, tit
 
 
 def bound_lines(ax, lower: float, upper: float, label: str | None = None) -> bool:
-    """Dashed red lines at the finite bounds; ``label`` names the upper one in a legend. True if
-    a line was drawn."""
+    """Dashed red lines on ``ax`` at the finite bounds ``lower`` and ``upper``; ``label`` names the
+    upper one in a legend. True if a line was drawn."""
     drawn = False
     for value, name in ((upper, "upper"), (lower, "lower")):
         if np.isfinite(value):

@@ -80,21 +80,21 @@ class Tracked:
 
 
 def held(values: np.ndarray) -> np.ndarray:
-    """A per-step series (K,) with its last value repeated, (K+1,): held over [t_k, t_k+1) when
-    drawn with ``drawstyle='steps-post'`` on the times of steps 0 .. K."""
+    """The per-step series ``values`` (K,) with its last value repeated, (K+1,): held over [t_k, t_k+1)
+    when drawn with ``drawstyle='steps-post'`` on the times of steps 0 .. K."""
     return np.append(values, values[-1:])
 
 
 def draw_targets(ax, times: np.ndarray, setpoint: np.ndarray, target: np.ndarray) -> None:
-    """The applied target of one component (K,) dashed and its setpoint (K,) dotted where it is
-    not free (NaN), both held over each step, on ``times`` (K+1,)."""
+    """On ``ax``, the applied ``target`` of one component (K,) dashed and its ``setpoint`` (K,) dotted
+    where it is not free (NaN), both held over each step, on ``times`` (K+1,)."""
     ax.plot(times, held(target), drawstyle="steps-post", label=TARGET_LABEL, **TARGET_STYLE)
     if np.isfinite(setpoint).any():
         ax.plot(times, held(setpoint), drawstyle="steps-post", label=SETPOINT_LABEL, **SETPOINT_STYLE)
 
 
 def mark_changes(ax, times: np.ndarray) -> None:
-    """Faint vertical lines at the times (c,) where the setpoint changed, one legend entry."""
+    """Faint vertical lines on ``ax`` at the ``times`` (c,) where the setpoint changed, one legend entry."""
     for index, t in enumerate(times):
         ax.axvline(t, label=CHANGE_LABEL if index == 0 else None, **CHANGE_STYLE)
 

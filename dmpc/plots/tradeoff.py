@@ -27,13 +27,13 @@ SENT = (("solves", "QP solves = plan messages", "-", "o"), ("bytes", "bytes sent
 
 
 def share(sweep: dict, key: str) -> np.ndarray:
-    """``key`` of each event row in % of the ``always`` row's, shape (thresholds,)."""
+    """``key`` of each event row of ``sweep`` in % of the ``always`` row's, shape (thresholds,)."""
     ref = sweep["always"].get(key) or np.nan
     return np.array([100.0 * (row.get(key) or np.nan) / ref for row in sweep["event"]], float)
 
 
 def cost_ppm(sweep: dict) -> np.ndarray:
-    """Each event row's closed-loop cost over the ``always`` row's, minus 1, in ppm."""
+    """Each event row's closed-loop cost over the ``always`` row's in ``sweep``, minus 1, in ppm."""
     ref = sweep["always"]["closed_loop_cost"]
     ppm = np.array([1e6 * (row["closed_loop_cost"] / ref - 1.0) for row in sweep["event"]], float)
     ppm[np.abs(ppm) < ROUNDING_PPM] = 0.0
@@ -41,7 +41,7 @@ def cost_ppm(sweep: dict) -> np.ndarray:
 
 
 def threshold_axis(sweeps: list[dict]) -> tuple[float, float]:
-    """(where a threshold of 0 is drawn on the log axis, the smallest positive threshold)."""
+    """(where a threshold of 0 is drawn on the log axis, the smallest positive threshold) over ``sweeps``."""
     positive = [row["trigger_cost"] for s in sweeps for row in s["event"] if row["trigger_cost"] > 0]
     smallest = min(positive, default=1.0)
     return smallest / 10.0, smallest
@@ -53,12 +53,12 @@ def positions(sweep: dict, zero_at: float) -> np.ndarray:
 
 
 def threshold_text(cost: float) -> str:
-    """``0``, ``1e-04``, ``0.1``, ``10``: a threshold as the legend and the labels give it."""
+    """The threshold ``cost`` as the legend and the labels give it: ``0``, ``1e-04``, ``0.1``, ``10``."""
     return "0" if cost == 0 else f"{cost:g}"
 
 
 def sweep_label(sweep: dict) -> str:
-    """``paper (M = 4)``, ``chain (M = 64)``."""
+    """The case of ``sweep``: ``paper (M = 4)``, ``chain (M = 64)``."""
     return f"{sweep['case']} (M = {sweep['M']})"
 
 
@@ -73,7 +73,7 @@ def _log_thresholds(ax, sweeps: list[dict]) -> None:
 
 
 def sent_panel(ax, sweeps: list[dict]) -> None:
-    """What is sent against the threshold, in % of ``always``."""
+    """What is sent against the threshold, in % of ``always``, one line per sweep of ``sweeps``, on ``ax``."""
     zero_at, _ = threshold_axis(sweeps)
     for index, s in enumerate(sweeps):
         for key, label, style, marker in SENT:
@@ -88,7 +88,8 @@ def sent_panel(ax, sweeps: list[dict]) -> None:
 
 
 def cost_panel(ax, sweeps: list[dict]) -> None:
-    """The closed-loop cost against the threshold, in ppm over ``always``'s."""
+    """The closed-loop cost against the threshold, in ppm over ``always``'s, one line per sweep of
+    ``sweeps``, on ``ax``."""
     zero_at, _ = threshold_axis(sweeps)
     for index, s in enumerate(sweeps):
         ax.plot(positions(s, zero_at), cost_ppm(s), marker="o", color=f"C{index}", label=sweep_label(s))
@@ -101,7 +102,8 @@ def cost_panel(ax, sweeps: list[dict]) -> None:
 
 
 def tradeoff_panel(ax, sweeps: list[dict]) -> None:
-    """QP solves (each a plan message) against the closed-loop cost, each point a threshold (named)."""
+    """QP solves (each a plan message) against the closed-loop cost, each point a threshold (named), one
+    line per sweep of ``sweeps``, on ``ax``."""
     for index, s in enumerate(sweeps):
         ppm, solves = cost_ppm(s), share(s, "solves")
         ax.plot(ppm, solves, linestyle="none", marker="o", color=f"C{index}", label=sweep_label(s))
@@ -137,7 +139,8 @@ def _cost_scale(ax, sweeps: list[dict], axis: str) -> None:
 
 
 def tradeoff_figure(plt, sweeps: list[dict], title: str):
-    """The three panels of the trade-off (:func:`sent_panel`, :func:`cost_panel`, :func:`tradeoff_panel`)."""
+    """The three panels of the trade-off (:func:`sent_panel`, :func:`cost_panel`, :func:`tradeoff_panel`)
+    of ``sweeps``, titled ``title``, drawn with ``plt`` (matplotlib.pyplot)."""
     fig, axes = panel_grid(plt, 3, 3, 4.4, 3.8, title=title)
     sent_panel(axes[0], sweeps)
     cost_panel(axes[1], sweeps)

@@ -15,8 +15,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dmpc.bus.faults import FaultPlan
-from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, Coupling, Method, Mode, ProtocolOptions, TriggerOptions
+from dmpc.core.steps import DEFAULT_METHOD, Coupling, Method, Mode, ProtocolOptions, TriggerOptions
 from dmpc.core.system import CoupledSystem
+from dmpc.methods import lacks
 from dmpc.offline import ControllerDesign
 from dmpc.tracking.schedule import SetpointEntry
 from dmpc.tracking.targets import DEFAULT_MARGIN
@@ -127,7 +128,7 @@ class Prepared:
     @property
     def tracks(self) -> bool:
         """True if the method tracks setpoints (the records carry the targets)."""
-        return self.method in SETPOINT_METHODS
+        return lacks(self.method, "tracks_setpoints") is None
 
     @property
     def names(self) -> list[str]:

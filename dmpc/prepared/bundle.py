@@ -36,8 +36,10 @@ def _floats(a: np.ndarray) -> list:
 
 
 def _set_from(d: dict | None) -> LinearSet | None:
-    if d is None:
-        return None
+    return None if d is None else _linear_set(d)
+
+
+def _linear_set(d: dict) -> LinearSet:
     return LinearSet(np.array(d["H"], float), np.array(d["lower"], float), np.array(d["upper"], float))
 
 
@@ -54,7 +56,7 @@ def _dense(d: dict) -> np.ndarray:
 
 
 def bundle_json(prepared: Prepared) -> dict:
-    """Everything an agent needs, as JSON-ready data."""
+    """Everything an agent needs of the ``prepared`` run, as JSON-ready data."""
     system = prepared.system
     return {
         "bundle_version": BUNDLE_VERSION,
@@ -78,18 +80,19 @@ def bundle_json(prepared: Prepared) -> dict:
 
 
 def write_bundle(prepared: Prepared, path: Path) -> None:
+    """Write the ``prepared`` run's :func:`bundle_json` to ``path`` (``run.json``)."""
     Path(path).write_text(json.dumps(bundle_json(prepared)))
 
 
 def load_bundle(path: Path) -> Prepared:
-    """Rebuild a Prepared from ``run.json`` (ValueError with a clear message if malformed)."""
+    """Rebuild a Prepared from ``run.json`` at ``path`` (ValueError with a clear message if malformed)."""
     try:
         d = json.loads(Path(path).read_text())
         if d.get("bundle_version") != BUNDLE_VERSION:
             raise ValueError(f"bundle version {d.get('bundle_version')!r} is not {BUNDLE_VERSION}")
         subsystems = tuple(Subsystem(s["name"], np.array(s["A"], float), np.array(s["B"], float),
                                      np.array(s["Q"], float), np.array(s["R"], float), np.array(s["x0"], float),
-                                     _set_from(s["input"]), _set_from(s["state"])) for s in d["subsystems"])
+                                     _linear_set(s["input"]), _set_from(s["state"])) for s in d["subsystems"])
         couplings = tuple(Coupling(c["target"], c["source"], np.array(c["A"], float), np.array(c["B"], float))
                           for c in d["couplings"])
         system = CoupledSystem(subsystems, couplings, tuple(tuple(e) for e in d["edges"]))

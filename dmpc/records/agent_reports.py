@@ -22,13 +22,14 @@ STARTUP = "startup_s"
 
 
 def report_path(out: Path, name: str) -> Path:
-    """Where agent ``name`` of a run started by ``dmpc run`` writes its report."""
+    """Where agent ``name`` of a run started by ``dmpc run`` in the run folder ``out`` writes its report."""
     return Path(out) / LOGS / report_file(keys.agent_role(name))
 
 
 def merge_agent_reports(out: Path, names: list[str], extra: dict | None = None,
                         launched_at: float | None = None) -> dict | None:
-    """Add the agents' reports to ``summary.json`` as ``agents``, the names of those without one
+    """Add the reports of the agents ``names`` to ``summary.json`` of the run folder ``out`` as
+    ``agents``, the names of those without one
     as ``agent_reports_missing``, and ``extra``; returns the summary (None if there is none).
 
     ``launched_at`` (``time.monotonic()`` when the processes were started, on this machine) adds

@@ -78,6 +78,7 @@ class StepTally:
     solve_reasons: dict[str, int] = field(default_factory=dict)
 
     def code(self, reason: str) -> int:
+        """The index of the fallback ``reason`` in :attr:`reasons` (added if new)."""
         try:
             return self.reasons.index(reason)
         except ValueError:
@@ -104,7 +105,7 @@ class StepColumns:
         self.last: StepRecord | None = None
         self._rows: list[np.ndarray] = []
         self._file = None if path is None else open(path, "ab", buffering=0)
-        self._end = 0 if path is None else self._file.tell()
+        self._end = 0 if self._file is None else self._file.tell()
 
     # ------------------------------------------------------------------ writing
     def _values(self, rec: StepRecord) -> dict[str, np.ndarray]:
@@ -129,19 +130,19 @@ class StepColumns:
             values[f"plan_v_{s.name}"] = rec.plans_v[i]
         return {key: np.asarray(v, dtype=float) for key, v in values.items()}
 
-    def _set_layout(self, values: dict[str, np.ndarray]) -> None:
+    def _set_layout(self, values: dict[str, np.ndarray]) -> dict[str, Column]:
         start, layout = 0, {}
         for key, v in values.items():
             layout[key] = Column(start, v.shape)
             start += v.size
         self.layout, self.width = layout, start
+        return layout
 
     def add(self, rec: StepRecord) -> bytes:
-        """Append one step; returns the bytes written (for the caller's error handling)."""
+        """Append the step ``rec``; returns the bytes written (for the caller's error handling)."""
         values = self._values(rec)
-        if self.layout is None:
-            self._set_layout(values)
-        row = np.concatenate([values[key].ravel() for key in self.layout])
+        layout = self.layout if self.layout is not None else self._set_layout(values)
+        row = np.concatenate([values[key].ravel() for key in layout])
         if row.size != self.width:
             raise ValueError(f"step {rec.k}: {row.size} values, the rows of this run have {self.width}")
         data = b""
@@ -169,15 +170,17 @@ class StepColumns:
 
     def _write(self, data: bytes) -> None:
         """Write one whole row, or none of it (OSError, the file cut back to its last row)."""
+        file, path = self._file, self.path
+        assert file is not None and path is not None  # rows are written only with a rows file
         view = memoryview(data)
         try:
             while view:
-                written = self._file.write(view)
+                written = file.write(view)
                 view = view[written:]
         except OSError:
             try:
-                os.truncate(self.path, self._end)
-                self._file.seek(self._end)
+                os.truncate(path, self._end)
+                file.seek(self._end)
             except OSError:
                 pass
             raise
@@ -191,7 +194,7 @@ class StepColumns:
     def _matrix(self) -> np.ndarray:
         """All rows, shape (K, width): a read-only memory map of the file, or the rows in memory."""
         K = self.tally.steps
-        if self._file is None:
+        if self._file is None or self.path is None:  # the rows file and its path go together
             return np.vstack(self._rows) if self._rows else np.zeros((0, self.width))
         if K == 0 or self.width == 0:
             return np.zeros((0, self.width))
@@ -213,11 +216,12 @@ class StepColumns:
                     "step_time": np.zeros(0), "max_change": np.zeros(0), "fallback_code": empty.astype(int)}
         rows = self._matrix()
         K = rows.shape[0]
-        last = self.last
+        last, layout = self.last, self.layout
+        assert last is not None and layout is not None  # both set by the first add()
         final = {"x": last.x_next, "alpha": last.alpha_next, "beta": last.beta_next,
                  "S": system.spread(last.x_next), "r": last.r_next}
         out = {}
-        for key, col in self.layout.items():
+        for key, col in layout.items():
             block = rows[:, col.start:col.start + col.size].reshape((K,) + col.shape)
             if key in FINAL:
                 block = np.concatenate([block, np.asarray(final[key], float).reshape((1,) + col.shape)])
@@ -230,7 +234,8 @@ class StepColumns:
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """``np.savez`` that copies each array a block of rows at a time (memory maps stay unread)."""
+    """``np.savez`` of ``arrays`` to ``path`` that copies each array a block of rows at a time (memory
+    maps stay unread)."""
     tmp = path.with_suffix(path.suffix + ".tmp")
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
         for key, value in arrays.items():

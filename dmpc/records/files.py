@@ -36,5 +36,5 @@ def log_file(role: str) -> str:
 
 
 def report_file(role: str) -> str:
-    """The report an agent process writes at exit under :data:`LOGS`."""
+    """The report the agent process of ``role`` writes at exit under :data:`LOGS`."""
     return f"{role}.json"

@@ -90,8 +90,9 @@ STATE_KEYS = ("setpoint", "reference", "target")
 
 
 def tracking_arrays(arrays: dict, steps: int, n: int, m: int) -> dict[str, np.ndarray]:
-    """The setpoint arrays of a run and ``governor`` (K,), as a run without setpoints has them
-    where trajectory.npz has none (the origin, nothing requested, the governor at 1)."""
+    """The setpoint arrays of a run (its ``arrays``, ``steps`` steps on n states and m inputs) and
+    ``governor`` (K,), as a run without setpoints has them where trajectory.npz has none (the
+    origin, nothing requested, the governor at 1)."""
     out = {}
     for key in TRACKING_KEYS:
         size = n if key in STATE_KEYS else m

@@ -66,6 +66,8 @@ def _array_json(a: np.ndarray) -> list:
 
 
 def write_json(path: Path, data) -> None:
+    """Write ``data`` (:func:`jsonable`) as indented JSON to ``path``, whole or not at all (a temporary
+    file renamed)."""
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(jsonable(data), indent=2) + "\n")
     os.replace(tmp, path)
@@ -126,21 +128,23 @@ class RunFolder:
         return self.columns.tally.steps
 
     def write_text(self, name: str, text: str) -> None:
-        """Write a file of the run folder before the run (RunFolderError if it cannot be written)."""
+        """Write ``text`` to the file ``name`` of the run folder before the run (RunFolderError if it
+        cannot be written)."""
         try:
             (self.path / name).write_text(text)
         except OSError as exc:
             raise write_error(exc, self.path / name, RunFolderError) from None
 
     def write_json(self, name: str, data) -> None:
-        """Write a JSON file of the run folder before the run (RunFolderError if it cannot be written)."""
+        """Write ``data`` as the JSON file ``name`` of the run folder before the run (RunFolderError if it
+        cannot be written)."""
         try:
             write_json(self.path / name, data)
         except OSError as exc:
             raise write_error(exc, self.path / name, RunFolderError) from None
 
     def append_step(self, rec: StepRecord) -> None:
-        """Append one step to the log (flushed) and to the rows of the arrays."""
+        """Append the step ``rec`` to the log (flushed) and to the rows of the arrays."""
         text = step_text(rec)
         log_end = self._log.tell()
         try:
@@ -174,7 +178,8 @@ class RunFolder:
                 pass
 
     def finish(self, extra: dict | None = None, limits: RunLimits | None = None, labels: dict | None = None) -> dict:
-        """Write ``trajectory.npz`` and ``summary.json`` from the recorded steps; returns the summary.
+        """Write ``trajectory.npz`` and ``summary.json`` from the recorded steps, with ``extra`` added to
+        the summary; returns the summary.
 
         ``limits`` (the planned steps and Jacobi caps) feed the verdict; without them the run is
         judged as planned to the steps it has; ``labels`` name the states and inputs in its
@@ -202,7 +207,7 @@ class RunFolder:
 
 
 def step_text(rec: StepRecord) -> str:
-    """A step record as its ``steps.jsonl`` line (docs/records.md), with its newline.
+    """The step record ``rec`` as its ``steps.jsonl`` line (docs/records.md), with its newline.
 
     Written for every step on the coordinator's step path, so serialised in one call of a C
     encoder: arrays as nested lists, NaN and infinities as ``null``, as :func:`step_line` gives them.
@@ -214,7 +219,7 @@ _STEP_OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_APPEND_NEWLINE
 
 
 def step_line(rec: StepRecord) -> dict:
-    """A step record as its ``steps.jsonl`` line (docs/records.md), JSON-ready."""
+    """The step record ``rec`` as its ``steps.jsonl`` line (docs/records.md), JSON-ready."""
     return jsonable(_line_fields(rec))
 
 
@@ -239,8 +244,9 @@ def _line_fields(rec: StepRecord) -> dict:
     return line
 
 
-def write_error(exc: OSError, path: Path, cls: type[RunFolderError] = RecordWriteError) -> RunFolderError:
-    """One line naming the file and the system's reason, e.g. for a full disk."""
+def write_error(exc: OSError, path: Path, cls: type[DmpcError] = RecordWriteError) -> DmpcError:
+    """One line naming the file ``path`` and the system's reason ``exc``, e.g. for a full disk, as a
+    ``cls`` (RecordWriteError by default)."""
     return cls(f"cannot write {path}: {exc.strerror or exc}")
 
 
@@ -257,7 +263,8 @@ def _columns_of(system: CoupledSystem, records: list[StepRecord]) -> StepColumns
 
 
 def trajectory_arrays(system: CoupledSystem, records: list[StepRecord]) -> dict[str, np.ndarray]:
-    """Arrays of a run: x (K+1, n), u (K, m), alpha (K+1, n), beta (K+1,), J (K,), S (K+1,), ...
+    """Arrays of a run of ``system`` from its step ``records``: x (K+1, n), u (K, m), alpha (K+1, n),
+    beta (K+1,), J (K,), S (K+1,), ...
 
     Also J_agents, solve_time, latency (K, M), qp_iterations (K, M) int, fallback (K, M) bool,
     rounds (K,) int, step_time, max_change (K,), and per subsystem plan_z_<name> (K, N+1, n_i),
@@ -267,7 +274,8 @@ def trajectory_arrays(system: CoupledSystem, records: list[StepRecord]) -> dict[
 
 
 def layout_arrays(system: CoupledSystem) -> dict[str, np.ndarray]:
-    """How to split the stacked arrays: ``names`` (M,) str, ``state_sizes`` and ``input_sizes`` (M,) int."""
+    """How to split the stacked arrays of ``system``: ``names`` (M,) str, ``state_sizes`` and
+    ``input_sizes`` (M,) int."""
     return {"names": np.array([s.name for s in system.subsystems], dtype=str),
             "state_sizes": np.array([s.n for s in system.subsystems], dtype=int),
             "input_sizes": np.array([s.m for s in system.subsystems], dtype=int)}
@@ -281,7 +289,10 @@ def stage_cost(system: CoupledSystem, x: np.ndarray, u: np.ndarray) -> float:
 def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays: dict[str, np.ndarray],
               limits: RunLimits | None = None, inputs_refused: dict[str, int] | None = None,
               labels: dict | None = None) -> dict:
-    """The content of summary.json, with the run's verdict (:mod:`dmpc.records.verdict`).
+    """The content of summary.json of a run of ``system``, with the run's verdict
+    (:mod:`dmpc.records.verdict`) judged against ``limits`` (the planned steps and Jacobi caps;
+    None: as planned to the steps it has), and the inputs the plant refused per reason
+    (``inputs_refused``).
 
     ``steps`` is the tally of a :class:`~dmpc.records.columns.StepColumns`, or the step records
     themselves (then ``arrays`` may come from :func:`trajectory_arrays`). ``labels`` are the

@@ -63,7 +63,7 @@ class RunRecorder:
         return self
 
     def on_step(self, record: StepRecord) -> None:
-        """Record a completed step; after a failed write (RecordWriteError, raised once) the
+        """Record the completed step ``record``; after a failed write (RecordWriteError, raised once) the
         records are closed and later steps are not recorded."""
         if self._write_failed:
             return

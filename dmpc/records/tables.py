@@ -11,8 +11,10 @@ from dmpc.prepared import Prepared
 from dmpc.terminal.console import stdout_console
 
 
-def design_report(prepared: Prepared) -> Table:
-    """A table of the design's figures and gains."""
+def design_report(prepared: Prepared, coupling: str = "") -> Table:
+    """A table of the figures and gains of the ``prepared`` run's design; ``coupling``: the
+    input-coupling check in words (``dmpc design``, :mod:`dmpc.offline.input_coupling`), a row of its
+    own when given."""
     d = prepared.design
     g = d.gains
     table = Table(title=f"design of '{prepared.name}'", show_header=False)
@@ -31,6 +33,8 @@ def design_report(prepared: Prepared) -> Table:
     table.add_row("horizon N", horizon_text(d))
     if prepared.model is not None:
         table.add_row("model", model_text(prepared.model))
+    if coupling:
+        table.add_row("input coupling", coupling)
     for s, K, P in zip(prepared.system.subsystems, g.K, g.P):
         table.add_row(f"K_{s.name}", np.array2string(K, precision=4))
         table.add_row(f"P_{s.name}", np.array2string(P, precision=4).replace("\n", ""))
@@ -56,7 +60,7 @@ def margin_text(g) -> str:
 
 
 def verdict_text(summary: dict) -> Text:
-    """The verdict line and its reasons, coloured: failures red, warnings yellow, notes dim.
+    """The verdict line of ``summary`` and its reasons, coloured: failures red, warnings yellow, notes dim.
 
     Summaries written before verdicts existed show none.
     """
@@ -81,7 +85,7 @@ def verdict_text(summary: dict) -> Text:
 
 
 def horizon_text(design) -> str:
-    """The horizon and, for ``horizon: auto``, how it was chosen."""
+    """The horizon of ``design`` (a ControllerDesign) and, for ``horizon: auto``, how it was chosen."""
     start = design.start or {}
     if start.get("horizon") == "auto":
         return (f"{design.horizon} (auto: smallest feasible N = {start['smallest_feasible']} for the distributed "
@@ -93,7 +97,8 @@ def horizon_text(design) -> str:
 
 
 def dropped_text(summary: dict) -> str:
-    """The messages the coordinator dropped as invalid, per sender and reason ('' if none): a state
+    """The messages the coordinator dropped as invalid, per sender and reason, from the run's
+    ``summary`` ('' if none): a state
     dropped once and then sent again valid leaves the run ok, and this is where it shows."""
     counts = summary.get("rejected") or {}
     if not counts:
@@ -111,7 +116,8 @@ FIXED_RANGE = (1e-3, 1e6)
 
 
 def number_text(value, decimals: int = 4) -> str:
-    """``93.6838``; ``2.5873e+17`` or ``1.2000e-05`` outside ``FIXED_RANGE``; ``n/a`` for a missing value."""
+    """``value`` with ``decimals`` decimals: ``93.6838``; ``2.5873e+17`` or ``1.2000e-05`` outside
+    ``FIXED_RANGE``; ``n/a`` for a missing value."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "n/a"
     size = abs(value)
@@ -131,8 +137,8 @@ def first_costs(J: list) -> tuple[str, str]:
 
 
 def feasibility_text(summary: dict) -> str:
-    """Whether every QP was solved, and if not what happened instead: QPs that failed, or plans
-    missed or lost (which are not QP failures: nothing is known of those QPs)."""
+    """Whether every QP of the run (its ``summary``) was solved, and if not what happened instead: QPs
+    that failed, or plans missed or lost (which are not QP failures: nothing is known of those QPs)."""
     if summary["feasible"]:
         return "yes"
     if not summary.get("steps"):
@@ -153,8 +159,8 @@ def feasibility_text(summary: dict) -> str:
 
 
 def trigger_text(summary: dict) -> str:
-    """With an event trigger: the QP solves and the plans kept, why agents solved, and the bytes
-    of the agents' answers."""
+    """With an event trigger, from the run's ``summary``: the QP solves and the plans kept, why agents
+    solved, and the bytes of the agents' answers."""
     reasons = ", ".join(f"{reason} {count}" for reason, count in summary.get("solve_reasons", {}).items())
     messages = summary.get("messages") or {}
     sent = f"; {messages['bytes']:,} bytes sent" if "bytes" in messages else ""
@@ -166,8 +172,9 @@ MAX_TRACKED_ROWS = 8
 
 
 def tracking_lines(tracking: dict | None) -> list[tuple[str, str]]:
-    """Rows of the summary table for setpoints: per component requested at the end, the value
-    asked and the error from it; and the steps where the reference governor held a target back."""
+    """Rows of the summary table for setpoints, from the summary's ``tracking``: per component requested
+    at the end, the value asked and the error from it; and the steps where the reference governor
+    held a target back."""
     if not tracking:
         return []
     rows = []
@@ -185,8 +192,8 @@ def tracking_lines(tracking: dict | None) -> list[tuple[str, str]]:
 
 
 def print_summary(summary: dict, out) -> None:
-    """One screen: the verdict and its reasons, then feasibility, fallbacks, cost, convergence,
-    timing, and where the records are."""
+    """One screen of the run's ``summary`` on the console ``out``: the verdict and its reasons, then
+    feasibility, fallbacks, cost, convergence, timing, and where the records are."""
     console = stdout_console()
     verdict = verdict_text(summary)
     if verdict:

@@ -18,7 +18,8 @@ GAP_TOLERANCE = 1e-6
 
 @dataclass(frozen=True)
 class Component:
-    """One requested component: subsystem, its label and where it sits in the stacked arrays."""
+    """One requested component: ``subsystem``, its ``label``, whether it is a state or an input
+    (``kind``: ``x`` or ``u``) and where it sits in the stacked arrays (``column``)."""
 
     subsystem: str
     label: str
@@ -27,7 +28,8 @@ class Component:
 
 
 def components(system: CoupledSystem, labels: dict | None = None) -> list[Component]:
-    """Every state and input component, labelled with the scenario's names (``Ta [K]``) or x1, u1, ..."""
+    """Every state and input component of ``system``, labelled with the scenario's names in ``labels``
+    (``Ta [K]``) or x1, u1, ..."""
     labels = labels or {}
     out = []
     for i, sub in enumerate(system.subsystems):
@@ -48,7 +50,8 @@ def _columns(arrays: dict, kind: str, name: str) -> np.ndarray:
 
 
 def unreachable(system: CoupledSystem, arrays: dict, labels: dict | None = None) -> list[dict]:
-    """The requested components whose target misses them: per component, the first step, the value
+    """The requested components of ``system`` whose target misses them in the run's ``arrays``
+    (labelled as :func:`components` with ``labels``): per component, the first step, the value
     asked, the nearest admissible target's value and the gap (target - asked)."""
     if not is_tracked(arrays):
         return []
@@ -66,7 +69,8 @@ def unreachable(system: CoupledSystem, arrays: dict, labels: dict | None = None)
 
 
 def tracking_summary(system: CoupledSystem, arrays: dict, labels: dict | None = None) -> dict | None:
-    """``summary.json``'s ``tracking``: per component requested at the last step, the value asked,
+    """``summary.json``'s ``tracking`` of a run of ``system`` from its ``arrays`` (components labelled
+    with ``labels``): per component requested at the last step, the value asked,
     the target applied, the state reached and the error from the request; None when nothing was
     ever requested."""
     if not is_tracked(arrays):
@@ -89,7 +93,8 @@ def tracking_summary(system: CoupledSystem, arrays: dict, labels: dict | None = 
 
 
 def target_changes(arrays: dict) -> np.ndarray:
-    """Per step k < K - 1, True where the applied target of step k+1 differs from step k's, shape (K-1,)."""
+    """Per step k < K - 1, True where the applied target of step k+1 differs from step k's, shape
+    (K-1,), from the run's ``arrays``."""
     if "target" not in arrays or arrays["target"].shape[0] < 2:
         return np.zeros(max(arrays["u"].shape[0] - 1, 0), bool)
     t = np.hstack([arrays["target"], arrays["target_u"]])

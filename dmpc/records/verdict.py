@@ -81,7 +81,7 @@ class Finding:
 
 @dataclass(frozen=True)
 class Verdict:
-    """``ok`` when there is no failure; warnings never change it."""
+    """``ok`` when there is no failure (``failures`` empty); ``warnings`` never change it."""
 
     failures: list[Finding]
     warnings: list[Finding]
@@ -131,7 +131,7 @@ def _tolerance(linear_set: LinearSet) -> float:
 
 
 def state_bound_excess(system: CoupledSystem, x: np.ndarray) -> dict[str, float | None]:
-    """Per subsystem, the largest excess of x_i(k) over X_i (None: no state set; < 0: inside).
+    """Per subsystem of ``system``, the largest excess of x_i(k) over X_i (None: no state set; < 0: inside).
 
     Parameters
     ----------
@@ -180,7 +180,8 @@ def _worst_row(linear_set: LinearSet, value: np.ndarray, what: str, labels: tupl
 
 
 def reference_size(system: CoupledSystem, x0: np.ndarray) -> float:
-    """The larger of ||x(0)||_inf and the largest finite state bound (1 when both are 0)."""
+    """The larger of ||x(0)||_inf (x0) and the largest finite state bound of ``system`` (1 when both
+    are 0)."""
     size = float(np.max(np.abs(x0))) if x0.size else 0.0
     for sub in system.subsystems:
         if sub.state_set is not None:
@@ -241,8 +242,8 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
     for i in sorted(qp_failed):
         later = [k for k in qp_failed[i] if k > 0]
         if later:
-            why = sorted({reasons[codes[k, i]] for k in later})
-            failures.append(Finding("infeasible", f"subsystem {names[i]}: QP failed ({', '.join(why)}) at "
+            causes = sorted({reasons[codes[k, i]] for k in later})
+            failures.append(Finding("infeasible", f"subsystem {names[i]}: QP failed ({', '.join(causes)}) at "
                                                   f"{len(later)} step(s) (k = {_steps_text(later)}); fallback applied",
                                     names[i], later, float(len(later))))
 

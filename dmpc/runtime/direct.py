@@ -16,12 +16,13 @@ from dataclasses import replace
 import numpy as np
 
 from dmpc.agents.controller import AgentController
-from dmpc.bus.messages import PlanMessage, Release
+from dmpc.agents.cooperative import CooperativeController
+from dmpc.bus.messages import Kept, PlanMessage, Release
 from dmpc.coordinator.barrier import Coordinator, SendRelease, StepCompleted
 from dmpc.core.steps import Coupling, ProtocolOptions, StepRecord
 from dmpc.core.system import CoupledSystem
 from dmpc.core.trajectories import Plan
-from dmpc.methods import Method, terminal_policy
+from dmpc.methods import Method, method_spec, terminal_policy
 from dmpc.offline import ControllerDesign
 from dmpc.plant.dynamics import Plant
 
@@ -47,19 +48,23 @@ class DirectLoop:
         self.design = design
         self.protocol = protocol
         self.policy = terminal_policy(method, system, design)
-        self.controllers = [AgentController(system, design, i, coupling=coupling, method=method)
-                            for i in range(system.M)]
+        self.cooperative = method_spec(method).cooperative
+        self.controllers: list[AgentController] | list[CooperativeController] = (
+            [CooperativeController(system, design, i) for i in range(system.M)] if self.cooperative else
+            [AgentController(system, design, i, coupling=coupling, method=method) for i in range(system.M)])
         self.names = [s.name for s in system.subsystems]
 
     def run(self, steps: int, on_step: Callable[[StepRecord], None], x0: np.ndarray | None = None,
             stop: Callable[[StepRecord], bool] | None = None) -> int:
-        """Run from x0 (the scenario's by default) for at most ``steps`` steps; returns the steps done.
+        """Run from x0 (the scenario's by default) for at most ``steps`` steps, ``on_step`` called with
+        each step's record; returns the steps done.
 
         ``stop(record)`` returning True ends the run after that step.
         """
         options: ProtocolOptions = replace(self.protocol, steps=steps)
         coordinator = Coordinator(self.system, self.design, Plant(self.system, x0), options, RUN_ID,
-                                  policy=self.policy)
+                                  policy=self.policy, cooperative=self.cooperative,
+                                  cooperative_step=options.cooperative_step)
         archive: dict[tuple[int, int, int], Plan] = {}
         pending = deque(coordinator.start())
         done = 0
@@ -90,5 +95,8 @@ class DirectLoop:
             else:
                 plans[j] = archive[(j, *ref)]
         msg = self.controllers[i].answer(release, plans, RUN_ID)
+        if isinstance(msg, Kept):  # only with an event trigger, which this loop's controllers are built without
+            raise RuntimeError(f"agent {self.names[i]} kept its plan at k = {release.k}: the direct loop runs "
+                               "without the event trigger (it has no kept plans to rebuild)")
         archive[(i, release.k, release.round)] = Plan(release.k, release.round, msg.z, msg.v)
         return msg

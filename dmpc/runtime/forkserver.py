@@ -134,7 +134,7 @@ class ForkServer:
                 return message
 
     def spawn(self, args: list[str], output: int) -> ForkedProcess:
-        """Fork ``dmpc ARGS`` with stdout and stderr on file descriptor ``output``."""
+        """Fork ``dmpc ARGS`` (``args``) with stdout and stderr on file descriptor ``output``."""
         forked = self.spawn_all([(args, output)])[0]
         if forked is None:
             raise ForkServerError("the fork server could not fork")
@@ -181,7 +181,7 @@ class ForkServer:
 
     @property
     def alive(self) -> bool:
-        return not self._closed and self.proc.poll() is None
+        return not self._closed and self.proc is not None and self.proc.poll() is None
 
     def close(self, kill: bool = False) -> None:
         """End the server; idempotent. Agents still running (forked while the launcher was
@@ -204,7 +204,8 @@ class ForkServer:
 
 
 class ForkedProcess:
-    """An agent forked by the server: the part of ``subprocess.Popen`` the launcher uses."""
+    """An agent forked by the ``server`` with process id ``pid``: the part of ``subprocess.Popen`` the
+    launcher uses."""
 
     def __init__(self, server: ForkServer, pid: int) -> None:
         self.server = server
@@ -221,14 +222,17 @@ class ForkedProcess:
         return self.returncode
 
     def wait(self, timeout: float | None = None) -> int:
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while self.poll() is None:
-            if deadline is not None and time.monotonic() >= deadline:
+        """Wait for the process to end, at most ``timeout`` seconds (None: as long as it takes; TimeoutExpired
+        after); its exit code."""
+        start = time.monotonic()
+        while (code := self.poll()) is None:
+            if timeout is not None and time.monotonic() - start >= timeout:
                 raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout)
             time.sleep(REAP_EVERY / 2)
-        return self.returncode
+        return code
 
     def send_signal(self, sig: int) -> None:
+        """Send signal ``sig`` to the process if it is still running."""
         if self.poll() is None:
             os.kill(self.pid, sig)
 
@@ -246,7 +250,7 @@ def _exists(pid: int) -> bool:
 
 # ---------------------------------------------------------------------------- the server
 def serve(fd: int, main: Callable[[], None], prepare: Callable[[], object] | None = None) -> None:
-    """The server's loop: fork on request, reap and report, end when the launcher goes.
+    """The server's loop on the socket ``fd``: fork on request, reap and report, end when the launcher goes.
 
     ``main`` is what a forked process runs (``dmpc``'s command line, reading ``sys.argv``);
     ``prepare`` is called once before the first fork (building the command line's parser).

@@ -25,7 +25,8 @@ from dmpc.runtime.central_loop import CentralLoop
 
 @dataclass
 class InProcessRun:
-    """The nodes of one in-process run (exposed for tests that inject faults)."""
+    """The nodes of one in-process run (exposed for tests that inject faults): the in-memory ``bus``, the
+    ``coordinator``'s node and the ``agents``' nodes."""
 
     bus: MemoryBus
     coordinator: CoordinatorNode
@@ -34,7 +35,8 @@ class InProcessRun:
 
 def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: str = "local",
               bus_for: Callable[[MemoryBus, str], Bus] | None = None) -> InProcessRun:
-    """Create the bus, the coordinator's node and one agent node per subsystem.
+    """Create the bus, the coordinator's node and one agent node per subsystem of the ``prepared``
+    run ``run_id``; ``on_step`` sees every step as it completes.
 
     Parameters
     ----------
@@ -45,9 +47,9 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
     if bus_for is not None:
         view = bus_for
     elif prepared.faults.is_clean:
-        view = lambda b, name: b  # noqa: E731
+        view = lambda b, name: b
     else:
-        view = lambda b, name: FaultyBus(b, name, prepared.faults)  # noqa: E731
+        view = lambda b, name: FaultyBus(b, name, prepared.faults)
     node = coordinator_node(prepared, view(bus, PLANT_PROCESS), run_id, on_step, make_plant(prepared))
     agents = [agent_node(prepared, name, view(bus, name), run_id) for name in prepared.names]
     node.announce()
@@ -58,7 +60,8 @@ def build_run(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id:
 
 def simulate(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: str = "local",
              bus_for: Callable[[MemoryBus, str], Bus] | None = None, startup_timeout: float = 60.0) -> InProcessRun:
-    """Run the scenario to the end in this process; ``on_step`` sees every step as it completes.
+    """Run the ``prepared`` run ``run_id`` to the end in this process; ``on_step`` sees every step as
+    it completes; ``bus_for`` as for :func:`build_run`.
 
     ``startup_timeout`` is in simulated seconds: agents whose Ready never gets through (a dead
     link) fail the run instead of retrying forever.
@@ -75,14 +78,15 @@ def simulate(prepared: Prepared, on_step: Callable[[StepRecord], None], run_id: 
 
 
 def record_run(prepared: Prepared, recorder: RunRecorder) -> tuple[dict, str]:
-    """Run the prepared method in this process into a RunRecorder and complete its records.
+    """Run the prepared method in this process into the RunRecorder ``recorder`` and complete its records.
 
     Distributed methods run their nodes on the in-memory bus (:func:`simulate`); ``centralized``
     runs one QP per step. Returns the summary and the failure ("" if none).
     """
     if not method_spec(prepared.method).distributed:
-        result = CentralLoop(prepared.system, prepared.design).run(prepared.protocol.steps, recorder.on_step,
-                                                                   plant=make_plant(prepared))
+        loop = CentralLoop(prepared.system, prepared.design, setpoints=prepared.setpoints,
+                           setpoint_margin=prepared.setpoint_margin)
+        result = loop.run(prepared.protocol.steps, recorder.on_step, plant=make_plant(prepared))
         summary = recorder.complete(runtime="in-process (centralized, no agents)", failure=result.failure or None)
         return summary, result.failure
     run = simulate(prepared, recorder.on_step)

@@ -23,7 +23,7 @@ from dmpc.prepared.bundle import write_bundle
 from dmpc.records.agent_reports import merge_agent_reports as merge_reports
 from dmpc.records.files import BUNDLE, DESIGN, LOGS, PROCESSES, SCENARIO, STEP_LOG, TLS, log_file, report_file
 from dmpc.records.run_folder import RunFolderError, claim_folder, write_error, write_json
-from dmpc.runtime.forkserver import ForkServer, ForkServerError
+from dmpc.runtime.forkserver import ForkedProcess, ForkServer, ForkServerError
 from dmpc.runtime.hosting import HOST_PREFIX, group_agents
 from dmpc.runtime.logpump import LogPump
 from dmpc.runtime.signals import interrupts_deferred, interrupts_held, raise_if_interrupted
@@ -50,12 +50,24 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 
 @dataclass
 class Child:
-    """A process of the run; ``agents``: the subsystems it serves (none for the plant)."""
+    """A process of the run; ``agents``: the subsystems it serves (none for the plant).
+
+    Attributes
+    ----------
+    role : str
+        ``plant``, or the agent process's role.
+    cmd : list of str
+        Its command line.
+    log_path : path
+        Where its output goes.
+    proc : Popen or ForkedProcess or None
+        The process, once started.
+    agents : tuple of str"""
 
     role: str
     cmd: list[str]
     log_path: Path
-    proc: subprocess.Popen | None = None
+    proc: subprocess.Popen | ForkedProcess | None = None
     agents: tuple[str, ...] = ()
 
     @property
@@ -115,11 +127,14 @@ def _ephemeral_range() -> tuple[int, int]:
 
 
 def prepare_run_folder(out: Path, prepared: Prepared) -> tuple[Path, Path]:
-    """Write the resolved scenario and the design the children load; returns their paths."""
+    """Write the resolved scenario and the design the children load into the run folder ``out``, from
+    the ``prepared`` run; returns their paths."""
     claim_folder(out, STEP_LOG, "a run")
     scenario_path = out / SCENARIO
     design_path = out / DESIGN
     target = scenario_path
+    if prepared.scenario is None:
+        raise ValueError("a run folder is prepared from a scenario, not from a run bundle")
     try:
         scenario_path.write_text(dump_resolved(prepared.scenario))
         target = design_path
@@ -138,7 +153,7 @@ TOPOLOGIES = ("mesh", "star")
 
 
 def default_topology(agents: int) -> str:
-    """``mesh`` up to ``STAR_ABOVE`` agent processes, ``star`` above."""
+    """``mesh`` up to ``STAR_ABOVE`` agent processes (``agents``), ``star`` above."""
     return "mesh" if agents <= STAR_ABOVE else "star"
 
 
@@ -146,14 +161,17 @@ def child_commands(prepared: Prepared, out: Path, scenario_path: Path, design_pa
                    startup_timeout: float, extra: list[str] | None = None, tls_dir: Path | None = None,
                    topology: str = "mesh", plant_model: str | None = None,
                    plant_timeout: float | None = None, agents_per_process: int = 1) -> list[Child]:
-    """The plant and agent command lines (``python -m dmpc.cli ...``); ``tls_dir``: every link
-    over TLS with the certificates (and access control) of that directory.
+    """The plant and agent command lines (``python -m dmpc.cli ...``) of the ``prepared`` run in the
+    folder ``out``, loading ``scenario_path`` and ``design_path``, with id ``run_id``, the plant
+    listening on ``port``, each waiting ``startup_timeout`` seconds to start, and ``extra``
+    arguments for every child; ``tls_dir``: every link over TLS with the certificates (and access
+    control) of that directory.
 
     With ``plant_timeout`` (an outside plant, ``dmpc run --plant external``) the first child is
     ``dmpc coordinator --plant external`` instead of ``dmpc plant``.
 
-    ``mesh``: every process a peer, agents linked directly to each other (lowest latency for
-    small M). ``star``: the plant's session is a router and agents are its clients, so there are
+    ``topology``: ``mesh``, every process a peer, agents linked directly to each other (lowest
+    latency for small M). ``star``: the plant's session is a router and agents are its clients, so there are
     M links instead of M^2/2 and agent-to-agent plans are forwarded by the plant's router.
     ``plant_model`` (``module:function``) is the plant process's ``--model``.
     ``agents_per_process``: K agents (at most) served by each agent process
@@ -223,8 +241,9 @@ def child_env() -> dict:
 
 
 def spawn(child: Child, pump: LogPump | None = None, forks: ForkServer | None = None) -> None:
-    """Start (or restart) one child, its SIGTERM tied to this process's end; an agent process is
-    forked by ``forks`` (:mod:`dmpc.runtime.forkserver`) when given and working."""
+    """Start (or restart) one child, its SIGTERM tied to this process's end, its output read by
+    ``pump`` (None: straight to its log file); an agent process is forked by ``forks``
+    (:mod:`dmpc.runtime.forkserver`) when given and working."""
     if forks is not None and pump is not None and _forkable(child) and forks.alive:
         read_end, write_end = os.pipe()
         try:
@@ -263,21 +282,23 @@ def spawn(child: Child, pump: LogPump | None = None, forks: ForkServer | None = 
 
 
 def stop_all(children: list[Child], first_signal: int = signal.SIGINT, grace: float = STOP_GRACE) -> None:
-    """Signal every live child, wait up to ``grace`` s, then SIGKILL what is left and reap all
+    """Send ``first_signal`` to every live child, wait up to ``grace`` s, then SIGKILL what is left and reap all
     (children not started yet are skipped: start-up may have been interrupted before them)."""
     for child in children:
-        if child.running:
+        proc = child.proc
+        if proc is not None and proc.poll() is None:  # child.running
             try:
-                child.proc.send_signal(first_signal)
+                proc.send_signal(first_signal)
             except ProcessLookupError:
                 pass
     deadline = time.monotonic() + grace
     while time.monotonic() < deadline and any(c.running for c in children):
         time.sleep(0.02)
     for child in children:
-        if child.running:
+        proc = child.proc
+        if proc is not None and proc.poll() is None:  # child.running
             try:
-                child.proc.kill()
+                proc.kill()
             except ProcessLookupError:
                 pass
     for child in children:
@@ -286,7 +307,7 @@ def stop_all(children: list[Child], first_signal: int = signal.SIGINT, grace: fl
 
 
 class StepCounter:
-    """Counts complete lines of the step log as it grows."""
+    """Counts complete lines of the step log ``path`` as it grows."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -307,6 +328,7 @@ class StepCounter:
 
 
 def tail(path: Path, lines: int = 5) -> str:
+    """The last ``lines`` lines of the file ``path``, indented ("" when it does not exist)."""
     try:
         text = path.read_text(errors="replace").strip().splitlines()
     except FileNotFoundError:
@@ -319,7 +341,12 @@ def launch(prepared: Prepared, out: Path, run_id: str, startup_timeout: float = 
            topology: str = "mesh", on_ready=None, plant_model: str | None = None,
            policy: RestartPolicy | None = None, plant_timeout: float | None = None,
            port: int | None = None, agents_per_process: int = 1) -> LaunchResult:
-    """Run the plant and M agents as processes; returns when all have exited.
+    """Run the plant and M agents of the ``prepared`` run as processes, each waiting at most
+    ``startup_timeout`` seconds for the run to start; returns when all have exited.
+    ``show_progress``: a progress bar on the terminal; ``extra_args``: more arguments for every
+    child; ``topology``: ``mesh`` or ``star`` (:func:`child_commands`); ``plant_model``: the plant
+    process's ``--model``; ``policy``: when agent processes are restarted (the default
+    :class:`~dmpc.runtime.supervisor.RestartPolicy` without).
 
     ``tls_dir`` runs every link over TLS with that certificate directory; ``secure`` first
     makes one in ``out/tls`` (certificates and access control bound to ``run_id``).
@@ -449,10 +476,10 @@ def _fork_server(logs: Path) -> ForkServer | None:
 
 
 def security_entry(children: list[Child]) -> dict | None:
-    """How the run's links were secured, read from the plant's command line (None: plain TCP).
+    """How the run's links were secured, read from the plant's command line among ``children`` (None:
+    plain TCP).
 
-    Every child gets the same ``--tls DIR``; its ``acl.json``, if there, is the access control.
-    """
+    Every child gets the same ``--tls DIR``; its ``acl.json``, if there, is the access control."""
     cmd = children[0].cmd if children else []
     if "--tls" not in cmd:
         return None
@@ -463,7 +490,8 @@ def security_entry(children: list[Child]) -> dict | None:
 
 def merge_agent_reports(out: Path, children: list[Child], record: Supervision | None = None,
                         launched_at: float | None = None) -> dict | None:
-    """Add the agents' reports to ``summary.json`` (see :mod:`dmpc.records.agent_reports`), and
+    """Add the agents' reports to ``summary.json`` in the run folder ``out`` (see
+    :mod:`dmpc.records.agent_reports`; the processes: ``children``), and
     what the launcher knows: for a run over TLS :func:`security_entry` as ``security``, with
     ``record`` the agent processes restarted and lost as ``launcher``, and with ``launched_at``
     (when the processes were started) ``startup_s``. None if the plant wrote no summary.

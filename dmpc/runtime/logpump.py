@@ -12,6 +12,7 @@ import selectors
 import threading
 from collections import deque
 from pathlib import Path
+from typing import BinaryIO
 
 TAIL_LINES = 20
 READ_SIZE = 65536
@@ -25,6 +26,7 @@ class _Stream:
         self.lines: deque[str] = deque(maxlen=TAIL_LINES)
         self.partial = b""
         self.log_failed = ""
+        self.log: BinaryIO | None
         try:
             self.log = open(log_path, "ab")
         except OSError as exc:
@@ -74,6 +76,8 @@ class LogPump:
         self._thread.start()
 
     def add(self, name: str, fd: int, log_path: Path) -> None:
+        """Read the pipe ``fd`` of child ``name`` into its log file ``log_path`` (a restarted child keeps
+        the last lines of the one before)."""
         stream = _Stream(name, log_path)
         with self._lock:
             old = self._streams.get(name)
@@ -83,6 +87,7 @@ class LogPump:
             self._selector.register(fd, selectors.EVENT_READ, stream)
 
     def tail(self, name: str, lines: int = 5) -> list[str]:
+        """The last ``lines`` lines child ``name`` wrote (none for a child not added)."""
         with self._lock:
             stream = self._streams.get(name)
             if stream is None:
@@ -91,6 +96,7 @@ class LogPump:
         return [line for line in shown if line.strip()][-lines:]
 
     def log_failed(self, name: str) -> str:
+        """Why child ``name``'s log file could not be written ("" if it could)."""
         stream = self._streams.get(name)
         return "" if stream is None else stream.log_failed
 

@@ -5,6 +5,8 @@ import contextlib
 import signal
 import sys
 import threading
+from collections.abc import Callable
+from types import FrameType
 
 
 class _Interrupts:
@@ -12,9 +14,11 @@ class _Interrupts:
     """Signals handled by :func:`sigterm_as_interrupt`'s handler since it was set."""
     deferred = 0
     """Depth of :func:`interrupts_deferred` blocks: while above 0 the handler only counts."""
+    unraisable_hook: Callable[[sys.UnraisableHookArgs], object] = sys.__unraisablehook__
+    """The hook :func:`_quiet_about_interrupts` passes the other dropped exceptions on to."""
 
 
-def _interrupt(signum, frame) -> None:
+def _interrupt(signum: int, frame: FrameType | None) -> None:
     _Interrupts.received += 1
     if not _Interrupts.deferred:
         raise KeyboardInterrupt
@@ -31,19 +35,16 @@ def sigterm_as_interrupt() -> None:
     signal.signal(signal.SIGTERM, _interrupt)
     signal.signal(signal.SIGINT, _interrupt)
     if sys.unraisablehook is not _quiet_about_interrupts:
-        _quiet_about_interrupts.default = sys.unraisablehook
+        _Interrupts.unraisable_hook = sys.unraisablehook
         sys.unraisablehook = _quiet_about_interrupts
 
 
-def _quiet_about_interrupts(unraisable) -> None:
+def _quiet_about_interrupts(unraisable: sys.UnraisableHookArgs) -> None:
     """Python's hook for exceptions it drops, without its traceback for a KeyboardInterrupt of
     :func:`_interrupt` (:func:`raise_if_interrupted` acts on it)."""
     if isinstance(unraisable.exc_value, KeyboardInterrupt) and _Interrupts.received:
         return
-    _quiet_about_interrupts.default(unraisable)
-
-
-_quiet_about_interrupts.default = sys.__unraisablehook__
+    _Interrupts.unraisable_hook(unraisable)
 
 
 def raise_if_interrupted() -> None:

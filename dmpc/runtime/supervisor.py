@@ -44,7 +44,8 @@ class RestartPolicy:
 
 @dataclass
 class Supervision:
-    """What happened to the agent processes during the run."""
+    """What happened to the agent processes during the run: ``restarts`` per role, the roles ``lost``
+    for good, and the exit codes of each role's crashes (``exits``)."""
 
     restarts: dict[str, int] = field(default_factory=dict)
     lost: list[str] = field(default_factory=list)
@@ -56,7 +57,8 @@ class Supervision:
 
 @dataclass
 class Ending:
-    """How the supervised run ended: ``failed`` roles with their exit codes ({} if none)."""
+    """How the supervised run ended: ``failed`` roles with their exit codes ({} if none), whether it was
+    ``interrupted`` (Ctrl-C), and a ``message`` on it."""
 
     failed: dict[str, int]
     interrupted: bool = False
@@ -75,6 +77,8 @@ class Supervisor:
     policy : RestartPolicy
     on_tick : callable () -> None, optional
         Called every poll (progress).
+    clock, sleep : callable
+        The time now and a pause (``time.monotonic`` and ``time.sleep``; tests pass their own).
     """
 
     def __init__(self, children, spawn, policy: RestartPolicy, on_tick=None, clock=time.monotonic,
@@ -144,7 +148,7 @@ class Supervisor:
 
 
 def restart_note(record: Supervision) -> str:
-    """One line on restarts and lost agents ("" if none)."""
+    """One line on the restarts and lost agents of ``record`` ("" if none)."""
     parts = []
     if record.restarts:
         parts.append("restarted " + ", ".join(f"{name} x{n}" for name, n in sorted(record.restarts.items())))

@@ -5,6 +5,7 @@ Subsystems are indexed 0..M-1 in file order (a family: "1".."M" -> 0..M-1).
 from __future__ import annotations
 
 import math
+from typing import overload
 
 import numpy as np
 
@@ -28,6 +29,14 @@ def _symmetric(rows: list) -> np.ndarray:
     """The symmetric part (the schema allows asymmetry up to a 1e-9 relative tolerance)."""
     a = _array(rows)
     return (a + a.T) / 2
+
+
+@overload
+def _linear_set(spec: BoxSpec | PolytopeSpec) -> LinearSet: ...
+
+
+@overload
+def _linear_set(spec: BoxSpec | PolytopeSpec | None) -> LinearSet | None: ...
 
 
 def _linear_set(spec: BoxSpec | PolytopeSpec | None) -> LinearSet | None:
@@ -58,7 +67,8 @@ def build_system(scn: Scenario) -> CoupledSystem:
 
 
 def discrete_model(scn: Scenario):
-    """The discretisation of a ``time: continuous`` scenario (:class:`dmpc.core.discretisation.DiscreteModel`).
+    """The discretisation of the ``time: continuous`` scenario ``scn``
+    (:class:`dmpc.core.discretisation.DiscreteModel`).
 
     Raises
     ------
@@ -70,9 +80,10 @@ def discrete_model(scn: Scenario):
 
     if scn.time != "continuous":
         raise ScenarioError("time: the scenario is in discrete time; nothing to discretise", field="time")
-    d = scn.discretisation
+    d, dt = scn.discretisation, scn.dt
+    assert dt is not None  # the schema asks for dt in continuous time
     try:
-        return discretise(_system_as_written(scn), scn.dt, d.method, d.truncate, d.tolerance)
+        return discretise(_system_as_written(scn), dt, d.method, d.truncate, d.tolerance)
     except FillInRefused as exc:
         raise ScenarioError(f"discretisation: {exc}", field="discretisation.truncate") from None
 
@@ -89,12 +100,12 @@ def _system_as_written(scn: Scenario) -> CoupledSystem:
         t, s = index[c.target], index[c.source]
         B = _array(c.B) if c.B is not None else np.zeros((subsystems[t].n, subsystems[s].m))
         couplings.append(Coupling(target=t, source=s, A=_array(c.A), B=B))
-    edges = tuple(tuple(sorted((index[a], index[b]))) for a, b in scn.graph)
+    edges = tuple((min(index[a], index[b]), max(index[a], index[b])) for a, b in scn.graph)
     return CoupledSystem(subsystems=subsystems, couplings=tuple(couplings), edges=edges)
 
 
 def given_gains(scn: Scenario) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """The scenario's K_i (m_i x n_i) and P_i (n_i x n_i, symmetrised), in subsystem order.
+    """The K_i (m_i x n_i) and P_i (n_i x n_i, symmetrised) of the scenario ``scn``, in subsystem order.
 
     Raises
     ------
@@ -104,8 +115,14 @@ def given_gains(scn: Scenario) -> tuple[list[np.ndarray], list[np.ndarray]]:
     if scn.design.gains != "given":
         raise ScenarioError(f"design.gains: is '{scn.design.gains}', gains are read from the scenario "
                             "only when it is 'given'", field="design.gains")
-    specs = scn.resolved_subsystems()
-    return [_array(s.K) for s in specs], [_symmetric(s.P) for s in specs]
+    K, P = [], []
+    for i, s in enumerate(scn.resolved_subsystems()):
+        if s.K is None or s.P is None:  # the schema asks for both with design.gains: given
+            raise ScenarioError(f"{scn.subsystem_path(i)}: K and P are required when design.gains is 'given'",
+                                field=scn.subsystem_path(i))
+        K.append(_array(s.K))
+        P.append(_symmetric(s.P))
+    return K, P
 
 
 def alpha0_vector(scn: Scenario, system: CoupledSystem) -> np.ndarray:
@@ -134,7 +151,7 @@ def alpha0_vector(scn: Scenario, system: CoupledSystem) -> np.ndarray:
 
 
 def revision_bounds(scn: Scenario) -> dict:
-    """``{index: dmpc.offline.tubes.RevisionBound}`` for the subsystems that declare one."""
+    """``{index: dmpc.offline.tubes.RevisionBound}`` for the subsystems of ``scn`` that declare one."""
     return {i: RevisionBound(state=_array(s.revision_bound.state), input=_array(s.revision_bound.input))
             for i, s in enumerate(scn.resolved_subsystems()) if s.revision_bound is not None}
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import numbers
 import re
+from collections.abc import Sequence
 from typing import Annotated, Literal, Optional, Union
 
 import numpy as np
@@ -20,11 +21,13 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Fiel
 
 from dmpc.bus.faults import PLANT_PROCESS
 from dmpc.core.errors import DmpcError
-from dmpc.core.steps import DEFAULT_METHOD, SETPOINT_METHODS, TRIGGER_METHODS, Coupling, Method, Mode, Trigger
+from dmpc.core.steps import DEFAULT_METHOD, Coupling, Method, Mode, Trigger
+from dmpc.methods import lacks
 
 __all__ = [
     "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "DiscretisationSpec", "DisturbanceSpec",
-    "FamilyCouplingSpec", "FaultsSpec", "LabelSpec", "LinkFaultSpec", "OptionsSpec", "PlantSpec", "PolytopeSpec",
+    "FamilyCouplingSpec", "FaultsSpec", "FourTankSpec", "LabelSpec", "LinkFaultSpec", "OptionsSpec", "PlantSpec",
+    "PolytopeSpec",
     "RevisionBoundSpec", "Scenario", "SpecError",
     "SubsystemSpec", "SubsystemTemplate", "TerminalSpec",
 ]
@@ -166,21 +169,57 @@ def _shape(rows: list[list[float]]) -> tuple[int, int]:
 
 
 def check_shape(mat: list[list[float]], shape: tuple[int, int], path: str, hint: str = "") -> None:
-    """Raise SpecError unless ``mat`` has ``shape``."""
+    """Raise SpecError unless ``mat`` has ``shape``.
+
+    Parameters
+    ----------
+    mat : list of list of float
+        The matrix as the file gives it, a list of rows (at least one).
+    shape : (int, int)
+        The rows and columns expected.
+    path : str
+        Where ``mat`` is written, relative to the model being validated (e.g. ``"A"``).
+    hint : str, optional
+        Where the expected shape comes from (e.g. ``"n x n with n = 2"``), added to the message in
+        parentheses; nothing when empty.
+    """
     got = _shape(mat)
     if got != shape:
         tail = f" ({hint})" if hint else ""
         raise SpecError(path, f"expected a {shape[0]}x{shape[1]} matrix, got {got[0]}x{got[1]}{tail}")
 
 
-def check_length(vec: list[float], n: int, path: str, what: str) -> None:
-    """Raise SpecError unless ``vec`` has ``n`` entries."""
+def check_length(vec: Sequence[object], n: int, path: str, what: str) -> None:
+    """Raise SpecError unless ``vec`` has ``n`` entries.
+
+    Parameters
+    ----------
+    vec : sequence
+        The list as the file gives it (numbers, or labels of states or inputs): only its length is checked.
+    n : int
+        The entries expected.
+    path : str
+        Where ``vec`` is written, relative to the model being validated.
+    what : str
+        What ``n`` counts and where it comes from (e.g. ``"n = 2 states, from A"``), in the message.
+    """
     if len(vec) != n:
         raise SpecError(path, f"expected {n} entries ({what}), got {len(vec)}")
 
 
 def check_definite(mat: list[list[float]], path: str, strict: bool) -> None:
-    """Symmetric (relative tolerance ``SYM_RTOL``) and positive (semi)definite, else SpecError."""
+    """Symmetric (relative tolerance ``SYM_RTOL``) and positive (semi)definite, else SpecError.
+
+    Parameters
+    ----------
+    mat : list of list of float
+        A square matrix as the file gives it (its shape already checked).
+    path : str
+        Where ``mat`` is written, relative to the model being validated.
+    strict : bool
+        Positive definite (smallest eigenvalue above ``PD_RTOL`` times the largest entry) when
+        true, positive semidefinite (down to ``-SYM_RTOL`` times it) when false.
+    """
     a = np.asarray(mat, dtype=float)
     scale = float(np.abs(a).max())
     asym = float(np.abs(a - a.T).max())
@@ -195,7 +234,21 @@ def check_definite(mat: list[list[float]], path: str, strict: bool) -> None:
 
 def check_inside(x: list[float], spec: "BoxSpec | PolytopeSpec", path: str, set_path: str, owner: str = "") -> None:
     """Raise SpecError unless the point ``x`` lies in the set ``spec`` (written at ``set_path``);
-    ``owner`` (e.g. "subsystem 2: ") starts the message."""
+    ``owner`` (e.g. "subsystem 2: ") starts the message.
+
+    Parameters
+    ----------
+    x : list of float
+        The point, a subsystem's start x_i(0) (one entry per coordinate of the set).
+    spec : BoxSpec or PolytopeSpec
+        The state set X_i.
+    path : str
+        Where ``x`` is written (a box's message adds the coordinate, ``path[c]``).
+    set_path : str
+        Where ``spec`` is written, named in the message with the bound that fails.
+    owner : str, optional
+        The start of the message (e.g. ``"subsystem 2: "``); none when empty.
+    """
     if isinstance(spec, BoxSpec):
         for c, (value, lo, hi) in enumerate(zip(x, spec.lower, spec.upper)):
             if not lo <= value <= hi:
@@ -496,14 +549,20 @@ class OptionsSpec(_Model):
     tolerance: PosFloat = Field(1e-9, description="Jacobi stops early when the largest plan change is below this.")
     initial_iterations: PosInt = Field(200, description="Maximum Jacobi rounds at k = 0 (iterate to convergence).")
     initial_tolerance: PosFloat = Field(1e-9, description="Jacobi convergence tolerance at k = 0.")
+    cooperative_step: Literal["line", "equal"] = Field(
+        "line", description="tv-box-coop: how a round combines the agents' proposals. 'line': every proposal taken "
+                            "with the weight s in [1/M, 1] of least cost that keeps every constraint (never worse than "
+                            "'equal'); 'equal': weights 1/M (Stewart et al. 2010). Unused by the other methods.")
     method: Method = Field(
         DEFAULT_METHOD, description="Control method. 'tv-box': the paper's time-varying terminal boxes; 'tv-box-opt': the "
                               "same with alpha(0), beta(0) = sigma(alpha(0)) chosen by the centralised QP at k = 0; "
+                              "'tv-box-coop': cooperative DMPC, each agent minimising the cost of every subsystem its "
+                              "inputs reach, with time-varying terminal boxes; "
                               "'fixed-box': the boxes held at alpha(0), beta(0); 'ellipsoid': terminal ellipsoids "
                               "x_i' P_i x_i <= r at the static common level (imposed through inscribed polytopes); "
                               "'ellipsoid-adaptive': the same with levels r_i(k+1) = r_i(k) + eta' Gamma_i eta; "
-                              "'centralized': one QP over the whole system with X^f as terminal set, no agents "
-                              "(the optimality reference).")
+                              "'centralized': one QP over the whole system with X^f as terminal set (around the "
+                              "target with setpoints), no agents (the optimality reference).")
     mode: Mode = Field(
         "lockstep", description="'lockstep': advance as soon as all plans are in; 'realtime': advance every dt.")
     dt: PosFloat = Field(0.1, description="Seconds per step in realtime mode.")
@@ -655,15 +714,73 @@ class DisturbanceSpec(_Model):
         return self
 
 
+FOURTANK_LEVELS = ("h1", "h2", "h3", "h4")
+"""The state names plant.model: fourtank looks for (docs/fourtank.md)."""
+FOURTANK_PUMPS = ("qa", "qb")
+"""The input names plant.model: fourtank looks for."""
+
+
+def _positive_entries(count: int):
+    """A validator of a list of ``count`` numbers > 0."""
+    def check(value: object) -> list[float]:
+        vec = _vector(value, allow_inf=False)
+        if len(vec) != count:
+            raise SpecError("", f"expected {count} entries, got {len(vec)}")
+        for i, v in enumerate(vec):
+            if not v > 0:
+                raise SpecError(f"[{i}]", f"expected a number > 0, got {v:g}")
+        return vec
+    return check
+
+
+def _splits(value: object) -> list[float]:
+    vec = _vector(value, allow_inf=False)
+    if len(vec) != 2:
+        raise SpecError("", f"expected 2 entries (gamma_a, gamma_b), got {len(vec)}")
+    for i, v in enumerate(vec):
+        if not 0 < v < 1:
+            raise SpecError(f"[{i}]", f"a valve split must lie in (0, 1), got {v:g}")
+    return vec
+
+
+class FourTankSpec(_Model):
+    """The quadruple-tank process that ``plant.model: fourtank`` simulates (defaults: the HD-MPC benchmark)."""
+
+    area: PosFloat = Field(0.06, description="Cross-section S of each tank, m^2.")
+    outlets: Annotated[list[float], BeforeValidator(_positive_entries(4))] = Field(
+        default_factory=lambda: [1.31e-4, 1.51e-4, 9.27e-5, 8.82e-5],
+        description="Outlet areas a1..a4 of the tanks, m^2 (4 entries > 0).")
+    gamma: Annotated[list[float], BeforeValidator(_splits)] = Field(
+        default_factory=lambda: [0.3, 0.4],
+        description="Valve splits [gamma_a, gamma_b] in (0, 1): pump a sends gamma_a of its flow to tank 1 and the "
+                    "rest to tank 4; pump b sends gamma_b to tank 2 and the rest to tank 3.")
+    q0: Annotated[list[float], BeforeValidator(_positive_entries(2))] = Field(
+        default_factory=lambda: [1.63, 2.0],
+        description="The operating flows [qa, qb] in m^3/h (> 0): the states and inputs are deviations from them "
+                    "and from their equilibrium levels.")
+    g: PosFloat = Field(9.81, description="Gravity, m/s^2.")
+    substeps: PosInt = Field(5, description="Runge-Kutta (RK4) steps per sampling period dt.")
+
+
 class PlantSpec(_Model):
     """What the plant simulates, when it is not the controllers' own model."""
 
-    model: Literal["nominal", "exact"] = Field(
+    model: Literal["nominal", "exact", "fourtank"] = Field(
         "nominal", description="'nominal': the controllers' discrete model; 'exact': the exact zero-order hold of "
                                "the whole continuous-time system (time: continuous only), so that the controllers' "
-                               "model error shows.")
+                               "model error shows; 'fourtank': the nonlinear quadruple-tank process of 'fourtank', "
+                               "integrated over each period dt (states named h1..h4, inputs qa, qb).")
+    fourtank: Optional[FourTankSpec] = Field(
+        None, description="model: fourtank only: the tanks' parameters; omitted: the HD-MPC benchmark's.")
     disturbance: Optional[DisturbanceSpec] = Field(
         None, description="An additive disturbance w(k) on every state update; null for none.")
+
+    @model_validator(mode="after")
+    def _fourtank_only(self) -> "PlantSpec":
+        if self.fourtank is not None and self.model != "fourtank":
+            raise SpecError("fourtank", f"only read when model is 'fourtank' (model is '{self.model}'): remove it "
+                                        "(--set plant.fourtank=null)")
+        return self
 
 
 class Scenario(_Model):
@@ -706,7 +823,10 @@ class Scenario(_Model):
 
     def resolved_subsystems(self) -> list[SubsystemSpec]:
         """The subsystems in order, with a family expanded."""
-        return list(self.subsystems) if self.family is None else self.family.members()
+        if self.family is not None:
+            return self.family.members()
+        assert self.subsystems is not None, "a scenario has 'subsystems' or 'family' (_cross_checks)"
+        return list(self.subsystems)
 
     def resolved_couplings(self) -> list[CouplingSpec]:
         """The family's chain couplings (if any) followed by the explicit ones."""
@@ -840,6 +960,45 @@ def _check_time(scn: Scenario) -> None:
         raise SpecError("dt", "required when time is 'continuous' (the sampling period used to discretise)")
     if scn.plant.model == "exact" and scn.time != "continuous":
         raise SpecError("plant.model", "'exact' needs time: continuous (a discrete-time model is already exact)")
+    if scn.plant.model == "fourtank":
+        _check_fourtank(scn)
+
+
+def fourtank_positions(scn: Scenario) -> tuple[list[int], list[int]]:
+    """Where h1..h4 sit in the global state and qa, qb in the global input of the scenario ``scn``
+    (plant.model: fourtank).
+
+    Raises
+    ------
+    SpecError
+        A level or pump the subsystems do not name, or a name given twice.
+    """
+    states: dict[str, int] = {}
+    inputs: dict[str, int] = {}
+    x_at = u_at = 0
+    for i, sub in enumerate(scn.resolved_subsystems()):
+        for kind, labels, found, at, wanted in (("states", sub.states, states, x_at, FOURTANK_LEVELS),
+                                                ("inputs", sub.inputs, inputs, u_at, FOURTANK_PUMPS)):
+            for offset, label in enumerate(labels or []):
+                if label.name in wanted and label.name in found:
+                    raise SpecError(f"{scn.subsystem_path(i)}.{kind}[{offset}].name",
+                                    f"'{label.name}' is named twice: plant.model 'fourtank' needs each level and "
+                                    "pump once")
+                found[label.name] = at + offset
+        x_at, u_at = x_at + sub.n, u_at + sub.m
+    missing = [name for name in FOURTANK_LEVELS if name not in states]
+    missing += [name for name in FOURTANK_PUMPS if name not in inputs]
+    if missing:
+        raise SpecError("plant.model", f"'fourtank' needs the subsystems to name their states "
+                                       f"{', '.join(FOURTANK_LEVELS)} and their inputs {', '.join(FOURTANK_PUMPS)} "
+                                       f"(states: and inputs: of each subsystem); missing: {', '.join(missing)}")
+    return [states[name] for name in FOURTANK_LEVELS], [inputs[name] for name in FOURTANK_PUMPS]
+
+
+def _check_fourtank(scn: Scenario) -> None:
+    if scn.dt is None:
+        raise SpecError("dt", "required when plant.model is 'fourtank' (the period the tanks are integrated over)")
+    fourtank_positions(scn)
 
 
 def _check_disturbance(spec: DisturbanceSpec | None, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
@@ -854,7 +1013,26 @@ def _check_disturbance(spec: DisturbanceSpec | None, subs: list[SubsystemSpec], 
 
 
 def setpoint_values(spec: SetpointSpec, sub: SubsystemTemplate, kind: str, path: str) -> list[float | None]:
-    """The components of ``spec.x`` (``kind`` 'x') or ``spec.u`` ('u') in order, None where free."""
+    """The components of ``spec.x`` (``kind`` 'x') or ``spec.u`` ('u') in order, None where free.
+
+    Parameters
+    ----------
+    spec : SetpointSpec
+        The setpoint entry, its ``x`` or ``u`` given as a list, a map of the subsystem's state or
+        input names, or not at all (every component free).
+    sub : SubsystemTemplate
+        The subsystem ``spec`` names: its n_i, m_i and state and input labels.
+    kind : {"x", "u"}
+        Which of the two to read.
+    path : str
+        Where ``spec`` is written (e.g. ``"setpoints[0]"``), for the SpecError of a list of the
+        wrong length or an unknown name.
+
+    Returns
+    -------
+    list of float or None
+        n_i entries for ``"x"``, m_i for ``"u"``.
+    """
     given = spec.x if kind == "x" else spec.u
     size = sub.n if kind == "x" else sub.m
     if given is None:
@@ -879,9 +1057,8 @@ def setpoint_values(spec: SetpointSpec, sub: SubsystemTemplate, kind: str, path:
 
 
 def _check_setpoints(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
-    if scn.setpoints and scn.options.method not in SETPOINT_METHODS:
-        raise SpecError("setpoints", f"the method '{scn.options.method}' does not track setpoints; use "
-                                     f"{' or '.join(SETPOINT_METHODS)} (options.method)")
+    if scn.setpoints and (error := lacks(scn.options.method, "tracks_setpoints")) is not None:
+        raise SpecError("setpoints", f"{error}: set options.method to one of them")
     if scn.setpoints and scn.options.tube == "robust":
         raise SpecError("setpoints", "setpoints are not tracked with options.tube: robust (the reference "
                                      "governor's test of a target does not include the tube's tightening)")
@@ -914,16 +1091,27 @@ def _check_trigger(scn: Scenario, index: dict[str, int]) -> None:
             _check_name(name, index, f"options.{field}.{name}")
     if opts.trigger != "event":
         return
-    if opts.method not in TRIGGER_METHODS:
-        raise SpecError("options.trigger", f"'event' works with the methods {' and '.join(TRIGGER_METHODS)} (options."
-                                           f"method is '{opts.method}'): a kept plan ends at the box centre alpha_i(k)")
+    if (error := lacks(opts.method, "supports_trigger")) is not None:
+        raise SpecError("options.trigger", f"'event': {error}: set options.method to one of them, or "
+                                           "options.trigger to 'always'")
     if opts.iterations != 1:
         raise SpecError("options.trigger", f"'event' needs one Jacobi round per step (options.iterations is "
                                            f"{opts.iterations}): an agent keeps or solves once per step")
 
 
 def per_subsystem(value: float | dict[str, float], names: list[str], default: float) -> tuple[float, ...]:
-    """A PerSubsystem option as one number per subsystem, in order (``default`` where a map leaves one out)."""
+    """A PerSubsystem option as one number per subsystem, in order (``default`` where a map leaves one out).
+
+    Parameters
+    ----------
+    value : float or dict of str to float
+        The option as the file gives it: one number for every subsystem, or a map subsystem name ->
+        number.
+    names : list of str
+        The subsystems' names, in the scenario's order.
+    default : float
+        The number of a subsystem the map leaves out.
+    """
     if isinstance(value, dict):
         return tuple(float(value.get(name, default)) for name in names)
     return tuple(float(value) for _ in names)

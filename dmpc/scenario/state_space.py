@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
+from typing import Any, Literal
 
 import numpy as np
 
@@ -50,7 +51,7 @@ def from_state_spaces(data: Mapping) -> dict:
         D, or whose time base differs from another system's or from the scenario's ``time``/``dt``.
     """
     out = dict(data)
-    bases: list[tuple[str, object]] = []  # (path, dt) of every system, in the order found
+    bases: list[tuple[str, TimeBase]] = []  # (path, dt) of every system, in the order found
     for path, entry, labelled, put in _entries(out):
         if isinstance(entry, Mapping) and SYSTEM in entry:
             put(_expanded(entry, path, labelled, bases))
@@ -81,12 +82,12 @@ def _entries(data: dict):
 
 
 def is_state_space(value: object) -> bool:
-    """True for a python-control StateSpace (recognised without importing python-control)."""
+    """True for a python-control StateSpace ``value`` (recognised without importing python-control)."""
     kind = type(value)
     return kind.__module__.split(".")[0] == "control" and all(hasattr(value, a) for a in ("A", "B", "C", "D", "dt"))
 
 
-def _expanded(entry: Mapping, path: str, labelled: bool, bases: list) -> dict:
+def _expanded(entry: Mapping, path: str, labelled: bool, bases: list[tuple[str, TimeBase]]) -> dict:
     """``entry`` with its ``system`` replaced by A, B (and labels); its time base appended to ``bases``."""
     where = f"{path}.{SYSTEM}"
     sys = entry[SYSTEM]
@@ -116,8 +117,13 @@ def _expanded(entry: Mapping, path: str, labelled: bool, bases: list) -> dict:
     return out
 
 
-def _time_base(dt: object, where: str) -> object:
-    """0.0 (continuous), True (discrete, period not given) or the period in seconds."""
+TimeBase = float | Literal[True]
+"""A system's time base: 0.0 (continuous), True (discrete, period not given) or the period in seconds."""
+
+
+def _time_base(dt: Any, where: str) -> TimeBase:
+    """0.0 (continuous), True (discrete, period not given) or the period in seconds, from a system's
+    ``dt`` (whatever the object holds; a value float() refuses raises here)."""
     if dt is True:
         return True
     if dt is None or isinstance(dt, bool):
@@ -129,11 +135,11 @@ def _time_base(dt: object, where: str) -> object:
     return value
 
 
-def _is_continuous(dt: object) -> bool:
+def _is_continuous(dt: TimeBase) -> bool:
     return dt is not True and dt == 0.0
 
 
-def _conflict(a: object, b: object) -> bool:
+def _conflict(a: TimeBase, b: TimeBase) -> bool:
     """True unless the time bases ``a`` and ``b`` can belong to one scenario (True fits any period)."""
     if _is_continuous(a) != _is_continuous(b):
         return True
@@ -142,13 +148,13 @@ def _conflict(a: object, b: object) -> bool:
     return not _close(a, b)
 
 
-def _describe(dt: object) -> str:
+def _describe(dt: TimeBase) -> str:
     if dt is True:
         return "discrete-time (dt = True)"
     return "continuous-time (dt = 0)" if dt == 0 else f"discrete-time with dt = {dt:g} s"
 
 
-def _set_time_base(data: dict, bases: list[tuple[str, object]]) -> None:
+def _set_time_base(data: dict, bases: list[tuple[str, TimeBase]]) -> None:
     first_path, first = bases[0]
     for path, dt in bases[1:]:
         if _conflict(first, dt):
@@ -180,7 +186,8 @@ def _set_time_base(data: dict, bases: list[tuple[str, object]]) -> None:
             data["dt"] = period
 
 
-def _close(a: object, b: float) -> bool:
+def _close(a: Any, b: float) -> bool:
+    """Whether ``a`` (any value: one float() refuses is not close) equals the period ``b``."""
     try:
         return abs(float(a) - b) <= 1e-12 * max(1.0, abs(b))
     except (TypeError, ValueError):

@@ -127,13 +127,15 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
 
 
 def scenario_access_control(system, run_id: str = "*") -> dict:
-    """:func:`access_control` for a ``CoupledSystem``'s subsystems and graph."""
+    """:func:`access_control` for the subsystems and graph of ``system`` (a ``CoupledSystem``), bound to
+    the run ``run_id`` (``*``: any run)."""
     names = [s.name for s in system.subsystems]
     neighbours = {names[i]: [names[j] for j in system.neighbours[i] if j != i] for i in range(system.M)}
     return access_control(names, neighbours, run_id)
 
 
 def write_acl(directory: str | Path, acl: dict) -> Path:
+    """Write the access control ``acl`` as ``acl.json`` to ``directory``; its path."""
     path = Path(directory) / ACL_FILE
     path.write_text(json.dumps(acl, indent=1))
     return path

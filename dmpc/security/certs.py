@@ -93,8 +93,8 @@ def default_ca_key_path(directory: str | Path) -> Path:
 
 def make_ca(directory: Path, name: str = "dmpc CA", days: int = VALID_DAYS,
             key_file: Path | None = None) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
-    """A self-signed CA (ECDSA P-256), its certificate written to ``ca.pem``; its private key to
-    ``key_file`` if given (mode 0600), else nowhere."""
+    """A self-signed CA (ECDSA P-256) named ``name``, valid for ``days`` days, its certificate written
+    to ``ca.pem`` in ``directory``; its private key to ``key_file`` if given (mode 0600), else nowhere."""
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.timezone.utc)
     cert = (x509.CertificateBuilder()
@@ -116,7 +116,9 @@ def make_ca(directory: Path, name: str = "dmpc CA", days: int = VALID_DAYS,
 
 def issue(directory: Path, role: str, ca_cert: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey,
           hosts: Sequence[str] = DEFAULT_HOSTS, days: int = VALID_DAYS) -> TlsFiles:
-    """A certificate for ``role`` (common name = role) signed by the CA, for server and client use."""
+    """A certificate for ``role`` (common name = role) signed by the CA (``ca_cert``, ``ca_key``), for
+    server and client use, valid for ``hosts`` (subject alternative names) and ``days`` days; written
+    with its private key to ``directory``."""
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.timezone.utc)
     cert = (x509.CertificateBuilder()
@@ -172,8 +174,12 @@ def make_run_security(directory: str | Path, system, hosts: Sequence[str] = DEFA
     Parameters
     ----------
     system : CoupledSystem
+    hosts : sequence of str
+        The host names and addresses the certificates are valid for.
     run_id : str
         Binds the access control to one run; ``*`` for any run of this scenario.
+    days : int
+        How long the certificates are valid.
     force : bool
         Replace a directory's existing CA, and an existing ``ca_key`` file; refused otherwise.
     ca_key : path, optional

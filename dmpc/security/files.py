@@ -18,17 +18,19 @@ CA_KEY = "ca.key"
 
 def role_names(agent_names: Iterable[str]) -> list[str]:
     """``router``, ``coordinator``, ``plant``, ``agent-<name>`` and ``sensor-<name>`` for every
-    subsystem, ``observer`` and ``operator``, in that order."""
+    subsystem of ``agent_names``, ``observer`` and ``operator``, in that order."""
     names = list(agent_names)
     return (["router", keys.COORDINATOR_ROLE, keys.PLANT_ROLE] + [keys.agent_role(name) for name in names]
             + [keys.sensor_role(name) for name in names] + ["observer", keys.OPERATOR_ROLE])
 
 
 def cert_path(directory: str | Path, role: str) -> Path:
+    """The certificate of ``role`` in the certificate directory ``directory``."""
     return Path(directory) / f"{role}.pem"
 
 
 def key_path(directory: str | Path, role: str) -> Path:
+    """The private key of ``role`` in the certificate directory ``directory``."""
     return Path(directory) / f"{role}.key"
 
 

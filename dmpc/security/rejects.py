@@ -30,9 +30,9 @@ _DETAIL = re.compile(r", got |;| \(")  # what follows is the value the sender se
 
 
 def reason_of(why: str) -> str:
-    """The reason under which a drop is counted: the text before the first colon, except that a
-    field of a message (``x[1]``, ``k``) keeps what is wrong with it (``x[1]: non-finite values``,
-    ``k: expected an integer >= 0``) without the value the sender sent."""
+    """The reason under which a drop said ``why`` is counted: the text before the first colon, except
+    that a field of a message (``x[1]``, ``k``) keeps what is wrong with it (``x[1]: non-finite
+    values``, ``k: expected an integer >= 0``) without the value the sender sent."""
     head, colon, rest = why.partition(":")
     if colon and (head in _FIELDS or _INDEXED_FIELD.fullmatch(head)):
         head = f"{head}: {_DETAIL.split(rest.strip(), maxsplit=1)[0].strip()}"

@@ -1,6 +1,8 @@
 """From a validated scenario to everything a run needs (system, design, protocol settings)."""
 from __future__ import annotations
 
+from typing import Final
+
 from dmpc.bus.faults import FaultPlan, LinkFault
 from dmpc.core.steps import ProtocolOptions, TriggerOptions
 from dmpc.core.system import CoupledSystem
@@ -21,12 +23,14 @@ from dmpc.scenario.schema import per_subsystem
 from dmpc.setup.plant import disturbance_bounds, plant_setup
 from dmpc.setup.start import MethodStart
 
-AUTO = "auto"
+AUTO: Final = "auto"
 
 
 def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | None = None,
                protocol: ProtocolOptions | None = None, disturbances: dict | None = None) -> ControllerDesign:
-    """Run the offline design the scenario asks for, or rebuild it from ``design.json`` content.
+    """Run the offline design the scenario asks for on ``system``, or rebuild it from ``design.json``
+    content; the start is checked with the coordinator's settings ``protocol`` (the scenario's by
+    default).
 
     Resolves ``terminal.beta0: auto`` and ``horizon: auto`` and checks the start
     (:mod:`dmpc.offline.horizon`); a design read from ``design_data`` keeps the horizon and beta0
@@ -62,10 +66,12 @@ def design_for(scenario: Scenario, system: CoupledSystem, design_data: dict | No
 
 
 def protocol_options(scenario: Scenario, steps: int | None = None) -> ProtocolOptions:
-    """The coordinator's settings from the scenario's options."""
+    """The coordinator's settings from the ``scenario``'s options, for ``steps`` steps (None: the
+    scenario's)."""
     opts = scenario.options
     return ProtocolOptions(steps=steps or scenario.steps, rounds=opts.iterations, tolerance=opts.tolerance,
-                           initial_rounds=opts.initial_iterations, initial_tolerance=opts.initial_tolerance)
+                           initial_rounds=opts.initial_iterations, initial_tolerance=opts.initial_tolerance,
+                           cooperative_step=opts.cooperative_step)
 
 
 def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | None = None) -> Prepared:

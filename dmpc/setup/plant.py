@@ -1,5 +1,6 @@
-"""What the plant simulates: the controllers' model, the exact discretisation, or the user's
-function, plus an additive disturbance (scenario field ``plant``, and ``--model`` / ``plant=``).
+"""What the plant simulates: the controllers' model, the exact discretisation, a built-in nonlinear
+model (the quadruple tank), or the user's function, plus an additive disturbance (scenario field
+``plant``, and ``--model`` / ``plant=``).
 
 A user's plant function is never named in a scenario file (a scenario must not run code): it
 comes from the command line (``dmpc plant --model module:function``) or from Python
@@ -17,12 +18,14 @@ import numpy as np
 
 from dmpc.core.system import CoupledSystem
 from dmpc.plant.disturbance import DisturbanceSequence, gaussian_sequence, uniform_sequence
+from dmpc.plant.fourtank import FourTank, FourTankPlant
 from dmpc.prepared import PlantFunction, PlantSetup, Prepared
 from dmpc.scenario import Scenario, ScenarioError, discrete_model
+from dmpc.scenario.schema import FourTankSpec, fourtank_positions
 
 
 def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantSetup:
-    """The scenario's ``plant`` section for a run of ``steps`` steps.
+    """The scenario's ``plant`` section for a run of ``system`` of ``steps`` steps.
 
     Raises
     ------
@@ -31,9 +34,12 @@ def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantS
     """
     spec = scenario.plant
     A = B = None
+    function, function_name = None, ""
     if spec.model == "exact":
         model = discrete_model(scenario)
         A, B = model.A_exact, model.B_exact
+    elif spec.model == "fourtank":
+        function, function_name = fourtank_plant(scenario), FOURTANK_NAME
     w, kind, bound = None, "", None
     if spec.disturbance is not None:
         kind = spec.disturbance.kind
@@ -42,7 +48,24 @@ def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantS
             bound = _per_state(system, spec.disturbance.bound)
         elif kind == "file":
             bound = DisturbanceSequence(w).bound()
-    return PlantSetup(model=spec.model, A=A, B=B, disturbance=w, disturbance_kind=kind, disturbance_bound=bound)
+    return PlantSetup(model=spec.model, A=A, B=B, disturbance=w, disturbance_kind=kind, disturbance_bound=bound,
+                      function=function, function_name=function_name)
+
+
+FOURTANK_NAME = "dmpc.plant.fourtank:FourTankPlant"
+"""How the built-in quadruple-tank plant is named in ``summary.json`` and messages."""
+
+
+def fourtank_plant(scenario: Scenario) -> FourTankPlant:
+    """The nonlinear quadruple-tank plant of ``plant.model: fourtank`` (:mod:`dmpc.plant.fourtank`):
+    the tanks of ``plant.fourtank`` (the benchmark's when omitted), integrated over the scenario's
+    dt, on the states named h1..h4 and the inputs named qa, qb wherever the subsystems put them."""
+    spec = scenario.plant.fourtank or FourTankSpec()
+    states, inputs = fourtank_positions(scenario)
+    tanks = FourTank(area=spec.area, outlets=(spec.outlets[0], spec.outlets[1], spec.outlets[2], spec.outlets[3]),
+                     gamma=(spec.gamma[0], spec.gamma[1]), g=spec.g)
+    assert scenario.dt is not None  # checked by the schema for model: fourtank
+    return FourTankPlant(tanks, np.array(spec.q0), scenario.dt, tuple(states), tuple(inputs), spec.substeps)
 
 
 def _per_state(system: CoupledSystem, by_name: dict[str, list[float]] | None) -> np.ndarray:
@@ -56,16 +79,18 @@ def _per_state(system: CoupledSystem, by_name: dict[str, list[float]] | None) ->
 
 def _disturbance(scenario: Scenario, system: CoupledSystem, steps: int) -> np.ndarray:
     spec = scenario.plant.disturbance
+    assert spec is not None  # called for a plant with a disturbance
     seed = scenario.seed if spec.seed is None else spec.seed
     if spec.kind == "uniform":
         return uniform_sequence(_per_state(system, spec.bound), steps, seed)
     if spec.kind == "gaussian":
         return gaussian_sequence(_per_state(system, spec.std), steps, seed)
+    assert spec.file is not None  # kind "file" comes with its file (the schema)
     return read_disturbance(Path(spec.file), system.n, steps)
 
 
 def read_disturbance(path: Path, n: int, steps: int) -> np.ndarray:
-    """Rows 0..steps-1 of a ``.npy`` or ``.csv`` file of w(k), shape (rows, n).
+    """Rows 0..steps-1 of the ``.npy`` or ``.csv`` file ``path`` of w(k), shape (rows, n).
 
     Raises
     ------
@@ -97,7 +122,8 @@ def read_disturbance(path: Path, n: int, steps: int) -> np.ndarray:
 
 
 def disturbance_bounds(setup: PlantSetup, system: CoupledSystem) -> dict[int, np.ndarray] | None:
-    """Per subsystem index, the bound (n_i,) of a bounded disturbance for the tube (``tube: robust``).
+    """Per subsystem index of ``system``, the bound (n_i,) of the bounded disturbance of the plant
+    ``setup`` for the tube (``tube: robust``).
 
     A uniform disturbance is bounded by its box, a file by its largest |w| per state over the
     run; a Gaussian one is unbounded and gives None (the tube cannot cover it).
@@ -109,7 +135,8 @@ def disturbance_bounds(setup: PlantSetup, system: CoupledSystem) -> dict[int, np
 
 
 def with_plant_function(prepared: Prepared, function: PlantFunction, name: str = "") -> Prepared:
-    """``prepared`` whose plant is ``function`` (x, u, k) -> x_next (the disturbance is kept)."""
+    """``prepared`` whose plant is ``function`` (x, u, k) -> x_next, named ``name`` in the records (the
+    disturbance is kept)."""
     if not callable(function):
         raise TypeError(f"the plant must be a function (x, u, k) -> x_next, got {type(function).__name__}")
     name = name or function_reference(function, strict=False)
@@ -127,7 +154,7 @@ def function_reference(function: PlantFunction, strict: bool = True) -> str:
         or notebook), inside another function, or a lambda.
     """
     module = getattr(function, "__module__", None)
-    qualname = getattr(function, "__qualname__", None) or getattr(type(function), "__qualname__", "")
+    qualname = str(getattr(function, "__qualname__", None) or getattr(type(function), "__qualname__", ""))
     if not strict:
         return f"{module}:{qualname}" if module else qualname
     if not module or module == "__main__" or "<" in qualname:
@@ -184,6 +211,8 @@ def _module_from_file(path: Path):
     if str(path.parent) not in sys.path:
         sys.path.append(str(path.parent))  # its own imports of neighbouring modules
     spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:  # a file Python cannot load as a module (e.g. not .py)
+        raise ImportError(f"{path} is not a Python module")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)

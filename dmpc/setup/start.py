@@ -32,9 +32,13 @@ class MethodStart:
     protocol: ProtocolOptions
 
     def terminal_rows(self, design: ControllerDesign) -> LinearSet:
+        """The method's terminal set at k = 0 with ``design``, as rows on the global state z(N)."""
         return initial_terminal_set(self.method, self.system, design)
 
     def distributed_plans(self, design: ControllerDesign) -> bool:
+        """Whether the distributed k = 0 step with ``design`` gives every agent a plan (always, for a
+        method
+        of one QP)."""
         if not method_spec(self.method).distributed:
             return True  # one QP: central feasibility is the whole story
         records: list[StepRecord] = []

@@ -75,7 +75,7 @@ class ProgressBar:
 
 
 def duration_text(seconds: float) -> str:
-    """``0.4 s``, ``42 s``, ``3 min 5 s`` or ``2 h 7 min``."""
+    """``seconds`` as ``0.4 s``, ``42 s``, ``3 min 5 s`` or ``2 h 7 min``."""
     if seconds < 9.95:
         return f"{max(0.0, seconds):.1f} s"
     seconds = round(seconds)

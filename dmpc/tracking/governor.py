@@ -19,11 +19,15 @@ QPs beyond these sets: setpoints are refused with it (dmpc.scenario.schema).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dmpc.offline.terminal_set import TerminalSet
 from dmpc.tracking.targets import Target, TargetSpace
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 BISECTIONS = 40
 """Halvings of the interval for theta*: about 1e-12 of the way."""
@@ -67,7 +71,8 @@ class ReferenceGovernor:
         K, block diagonal.
     """
 
-    def __init__(self, space: TargetSpace, terminal: TerminalSet, closed_loop, gain) -> None:
+    def __init__(self, space: TargetSpace, terminal: TerminalSet, closed_loop: np.ndarray | sp.spmatrix,
+                 gain: np.ndarray | sp.spmatrix) -> None:
         self.space = space
         self.terminal = terminal
         self.closed_loop = closed_loop
@@ -83,7 +88,8 @@ class ReferenceGovernor:
         return tail, self.terminal.sigma(self.closed_loop @ d, target.scale)
 
     def slack(self, eta: np.ndarray, target: Target) -> float:
-        """The smaller of :meth:`slacks`: >= 0 when the candidates stay feasible for ``target``."""
+        """The smaller of :meth:`slacks` at the terminal states eta (n,): >= 0 when the candidates stay
+        feasible for ``target``."""
         return min(self.slacks(eta, target))
 
     def step(self, eta: np.ndarray, applied: Target, requested: Target) -> GovernorStep:

@@ -6,6 +6,7 @@ given while a run goes on join the schedule at the step they take effect.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +48,7 @@ class Schedule:
         Entries with the same ``at`` and subsystem: the later one in the list holds.
     """
 
-    def __init__(self, system: CoupledSystem, entries=()) -> None:
+    def __init__(self, system: CoupledSystem, entries: Iterable[SetpointEntry] = ()) -> None:
         self.system = system
         self.entries: tuple[SetpointEntry, ...] = tuple(sorted(entries, key=lambda e: e.at))  # stable
 

@@ -72,7 +72,7 @@ class Request:
 
     @classmethod
     def free(cls, n: int, m: int) -> "Request":
-        """Nothing requested: the target is the origin."""
+        """Nothing requested on n states and m inputs: the target is the origin."""
         return cls(np.full(n, np.nan), np.full(m, np.nan))
 
     @property
@@ -80,6 +80,7 @@ class Request:
         return bool(np.isnan(self.x).all() and np.isnan(self.u).all())
 
     def same_as(self, other: "Request") -> bool:
+        """Whether ``other`` asks for the same setpoint (NaN entries, "free", count as equal)."""
         return np.array_equal(self.x, other.x, equal_nan=True) and np.array_equal(self.u, other.u, equal_nan=True)
 
 
@@ -112,6 +113,7 @@ class Target:
 
     @classmethod
     def origin(cls, n: int, m: int) -> "Target":
+        """The origin as a target of n states and m inputs (scale 1, nothing requested)."""
         return cls(np.zeros(n), np.zeros(m), 1.0, np.full(n, np.nan), np.full(m, np.nan), True)
 
     @property
@@ -120,7 +122,7 @@ class Target:
 
     def towards(self, other: "Target", theta: float, space: "TargetSpace") -> "Target":
         """The steady state a fraction ``theta`` in [0, 1] of the way to ``other`` (a steady state too,
-        since steady states form a subspace); its gaps are ``other``'s."""
+        since steady states form a subspace), with the scale ``space`` gives it; its gaps are ``other``'s."""
         if theta >= 1.0:
             return other
         if theta <= 0.0:
@@ -131,7 +133,8 @@ class Target:
 
 
 def gauge_rows(linear_set: LinearSet | None, dim: int) -> sp.csr_matrix:
-    """Rows a_p with gauge(v) = max(0, max_p a_p v) for ``{lower <= H v <= upper}``, shape (q, dim).
+    """Rows a_p with gauge(v) = max(0, max_p a_p v) for ``linear_set`` = ``{lower <= H v <= upper}``
+    (None: no rows), shape (q, dim).
 
     Each finite side of each row gives one: H_r / upper_r and H_r / lower_r. The origin must lie
     in the set's interior (lower < 0 < upper where finite); DesignError-free: that is checked by
@@ -252,7 +255,8 @@ class TargetSpace:
         import scipy.sparse.linalg as spla  # here: loaded only by who computes a target
 
         correction = spla.lsqr(self._steady, residual, atol=1e-15, btol=1e-15, iter_lim=10 * w.size)[0]
-        return w - correction
+        moved: np.ndarray = w - correction
+        return moved
 
     def _solve(self, pinned: np.ndarray, values: np.ndarray, exact: bool, tolerance: float = 0.0) -> np.ndarray | None:
         """One steady-state QP over w = [x, u] (n + m,); None when it is infeasible.

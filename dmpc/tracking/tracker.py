@@ -13,6 +13,7 @@ first time it is seen, nothing after).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from dmpc.offline.terminal_set import TerminalSet
 from dmpc.tracking.governor import ReferenceGovernor
 from dmpc.tracking.schedule import Schedule, SetpointEntry
 from dmpc.tracking.targets import DEFAULT_MARGIN, Request, Target, TargetSpace
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,8 +71,9 @@ class Tracker:
         Targets keep this fraction of every bound free (:class:`TargetSpace`).
     """
 
-    def __init__(self, system: CoupledSystem, terminal: TerminalSet, closed_loop, gain,
-                 entries: tuple[SetpointEntry, ...] = (), margin: float = DEFAULT_MARGIN) -> None:
+    def __init__(self, system: CoupledSystem, terminal: TerminalSet, closed_loop: np.ndarray | sp.spmatrix,
+                 gain: np.ndarray | sp.spmatrix, entries: tuple[SetpointEntry, ...] = (),
+                 margin: float = DEFAULT_MARGIN) -> None:
         self.system = system
         self.space = TargetSpace(system, margin)
         self.governor = ReferenceGovernor(self.space, terminal, closed_loop, gain)
@@ -87,7 +92,7 @@ class Tracker:
         return bool(self.schedule)
 
     def add(self, entry: SetpointEntry) -> None:
-        """A request that arrived while the run goes on (its ``at`` is a step not yet decided)."""
+        """A request ``entry`` that arrived while the run goes on (its ``at`` is a step not yet decided)."""
         self.schedule = self.schedule.with_entry(entry)
 
     def reference(self, k: int) -> tuple[Request, Target]:

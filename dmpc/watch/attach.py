@@ -20,6 +20,7 @@ READY_TIMEOUT = 20.0  # seconds to wait for the page's server before starting th
 
 
 def port_open(port: int, host: str = "127.0.0.1") -> bool:
+    """Whether something accepts connections on ``port`` of ``host``."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.settimeout(0.2)
         return sock.connect_ex((host, port)) == 0
@@ -42,7 +43,8 @@ class Watcher:
         self._port = 0
 
     def start(self, out: Path, run_id: str, endpoint: str, tls_dir: Path | None) -> None:
-        """Start ``dmpc watch`` on the run's plant endpoint and wait until its page is served.
+        """Start ``dmpc watch`` on the run's plant ``endpoint`` (run ``run_id``, its folder ``out``, the
+        certificates in ``tls_dir`` if any) and wait until its page is served.
 
         Called by the launcher when the run folder is ready (``launch(..., on_ready=...)``), and
         again if it has to start the run on another port: the page then moves to the new

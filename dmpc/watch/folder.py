@@ -26,8 +26,8 @@ class FolderError(InputError, ValueError):
 
 
 def folder_meta(path: Path, run_id: str = "") -> RunMeta:
-    """The run's description from ``scenario.yaml`` and ``design.json`` (with the scenario's
-    names and units), else from ``run.json``.
+    """The description of the run in folder ``path`` from ``scenario.yaml`` and ``design.json``
+    (with the scenario's names and units), else from ``run.json``; ``run_id`` if known.
 
     Raises
     ------
@@ -58,7 +58,7 @@ def _from_scenario(path: Path):
         raise FolderError(f"{path}: cannot read {DESIGN} ({exc})") from None
     try:
         return prepare(load_scenario(path / SCENARIO), design_data=design)
-    except Exception as exc:  # a scenario or design that does not load: say which folder
+    except Exception as exc:  # noqa: BLE001 - a scenario or design that does not load: say which folder
         raise FolderError(f"{path}: cannot read the run's scenario ({type(exc).__name__}: {exc})") from None
 
 

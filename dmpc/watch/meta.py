@@ -132,7 +132,27 @@ class SubsystemMeta:
 
 @dataclass(frozen=True)
 class RunMeta:
-    """A run's description on the observer's side (see :func:`meta_json` for the fields)."""
+    """A run's description on the observer's side (:func:`meta_json` writes it).
+
+    Attributes
+    ----------
+    run_id, scenario, method, mode : str
+        The run's id, its scenario's name, the method and ``lockstep`` or ``realtime``.
+    dt : float
+        The sampling period (s).
+    deadline : float or None
+        The step deadline (s) of a real-time run.
+    steps, horizon : int
+        The steps K and the horizon N.
+    digest : str
+        The design's digest.
+    subsystems : tuple of SubsystemMeta
+    edges : tuple of (name, name)
+        The communication graph's undirected pairs.
+    faults : dict
+        ``default`` and per directed link (``links``): delay, jitter and loss.
+    trigger : str
+        ``options.trigger``: ``always`` or ``event``."""
 
     run_id: str
     scenario: str
@@ -173,7 +193,7 @@ class RunMeta:
 
     @classmethod
     def from_json(cls, data: dict) -> "RunMeta":
-        """Build from :func:`meta_json` output.
+        """Build from :func:`meta_json` output ``data``.
 
         Raises
         ------

@@ -48,7 +48,7 @@ class BusObserver:
         self._tls, self._acl = tls, acl
         self._config()  # a malformed endpoint fails here, in the caller, not on the thread
         self._stop = threading.Event()
-        self._bus = None
+        self._bus: ZenohBus | None = None
         self._thread = threading.Thread(target=self._main, name="dmpc-observer", daemon=True)
 
     def _config(self):
@@ -60,7 +60,7 @@ class BusObserver:
         self._thread.start()
 
     def close(self, timeout: float = 2.0) -> None:
-        """Stop handling messages and close the session; idempotent."""
+        """Stop handling messages and close the session, waiting at most ``timeout`` seconds; idempotent."""
         self._stop.set()
         self._thread.join(timeout)
         if self._bus is not None:
@@ -89,7 +89,7 @@ class BusObserver:
             bus.run(until=self._stop.is_set)
         except BusError:
             pass
-        except Exception as exc:  # noqa: BLE001 - the page keeps what it has and says why it stopped
+        except Exception as exc:  # logged: the page keeps what it has and says why it stopped
             log.exception("observer stopped")
             self.state.set_connection(f"observer stopped: {type(exc).__name__}: {exc}")
 

@@ -17,24 +17,24 @@ from __future__ import annotations
 import bisect
 import html
 import math
+from typing import Any, Literal
 
 from bokeh.layouts import column, gridplot, row
-from bokeh.models import (
-    ColumnDataSource,
-    Div,
-    HoverTool,
-    InlineStyleSheet,
-    LegendItem,
-    Range1d,
-    Slider,
-    Span,
-    Toggle,
-)
+from bokeh.models import ColumnDataSource, HoverTool, InlineStyleSheet, Range1d
+
+# from their own modules: bokeh.models builds __all__ of these at import, which a type checker cannot read
+from bokeh.models.annotations.geometry import Span
+from bokeh.models.annotations.labels import Title
+from bokeh.models.annotations.legends import LegendItem
+from bokeh.models.widgets.buttons import Toggle
+from bokeh.models.widgets.markups import Div
+from bokeh.models.widgets.sliders import Slider
 from bokeh.palettes import Category10_10
 from bokeh.plotting import figure
 
 from dmpc.bus import keys
-from dmpc.watch.state import RunState, StateRow, StepRow
+from dmpc.watch.meta import RunMeta
+from dmpc.watch.state import RunState, Snapshot, StateRow, StepRow
 from dmpc.watch.views import (
     AgentHistory,
     agent_states,
@@ -61,10 +61,11 @@ table.dmpc-readout td, table.dmpc-readout th, .dmpc-summary td {padding: 1px 12p
 """
 
 
-def _figure(title: str, x_range, y_axis_type: str = "linear", height: int = 230):
-    fig = figure(title=title, height=height, width=360, x_axis_label="k", y_axis_type=y_axis_type, x_range=x_range,
-                 tools="pan,wheel_zoom,box_zoom,reset,save", toolbar_location="right")
-    fig.title.text_font_size = "11pt"
+def _figure(title: str, x_range: Range1d, y_axis_type: Literal["linear", "log"] = "linear",
+            height: int = 230) -> figure:
+    fig = figure(title=Title(text=title, text_font_size="11pt"), height=height, width=360, x_axis_label="k",
+                 y_axis_type=y_axis_type, x_range=x_range, tools="pan,wheel_zoom,box_zoom,reset,save",
+                 toolbar_location="right")
     return fig
 
 
@@ -93,9 +94,9 @@ class WatchPage:
         self.shown_steps = 0
         self.follow = True
         self.built = False
-        self.meta = None
-        self.snap = None
-        self.history: AgentHistory | None = None
+        self._meta: RunMeta | None = None
+        self.snap: Snapshot | None = None
+        self._history: AgentHistory | None = None
         # (subsystem, 'x' or 'u', 'target' or 'setpoint', its lines and legend item): shown once tracked
         self.tracking: list[tuple[int, str, str, list]] = []
         self.tracked = False  # a step with targets has arrived: their sources are filled from then on
@@ -111,23 +112,38 @@ class WatchPage:
         doc.add_periodic_callback(self.tick, TICK_MS)
         self.tick()
 
+    @property
+    def meta(self) -> RunMeta:
+        """The run's description; the page is built once it has come."""
+        if self._meta is None:
+            raise RuntimeError("the page is not built yet: the run's description has not come")
+        return self._meta
+
+    @property
+    def history(self) -> AgentHistory:
+        """The agents' counts over the steps (once the page is built)."""
+        if self._history is None:
+            raise RuntimeError("the page is not built yet: the run's description has not come")
+        return self._history
+
     # -- building ----------------------------------------------------------------------------
-    def _build(self, meta) -> None:
-        self.meta = meta
-        self.history = AgentHistory(meta)
+    def _build(self, meta: RunMeta) -> None:
+        self._meta = meta
+        self._history = AgentHistory(meta)
         self.slider = Slider(start=0, end=1, value=0, step=1, title="step k", name="step-slider", width=600,
                              disabled=True)
         self.slider.on_change("value", lambda attr, old, new: self._on_slider(new))
         self.play = Toggle(label="▶ replay", name="play", width=110, button_type="primary")
         self.play.on_change("active", lambda attr, old, new: self._on_play(new))
         tables = InlineStyleSheet(css=TABLES)
-        scroll = {"overflow-y": "auto"}
+        scroll: dict[str, str | None] = {"overflow-y": "auto"}
         rows = min(meta.M, SHOWN)
         self.readout = Div(name="readout", width=700, height=50 + 22 * rows, stylesheets=[tables], styles=scroll)
         self.summary = Div(name="summary", width=600, stylesheets=[tables])  # changes once, at the end
         self.cursors: list[Span] = []
         steps = ColumnDataSource({"k": [0, max(meta.steps, 1)]}, name="step-range")
-        x_range = Range1d(0, max(meta.steps, 1), bounds=(-1, max(meta.steps, 1) + 1))  # shared: zoom one, zoom all
+        # shared: zoom one, zoom all
+        x_range = Range1d(start=0, end=max(meta.steps, 1), bounds=(-1, max(meta.steps, 1) + 1))
 
         def bound_line(fig, value: float) -> None:
             # a glyph, not a Span: the y range then includes the bound
@@ -152,7 +168,8 @@ class WatchPage:
         self.edges = ColumnDataSource(name="graph-edges")
         self._update_graph()
         fig_graph = figure(title="communication graph", height=300, width=300, tools="hover,save",
-                           x_range=Range1d(-1.35, 1.35), y_range=Range1d(-1.35, 1.35), toolbar_location=None)
+                           x_range=Range1d(start=-1.35, end=1.35), y_range=Range1d(start=-1.35, end=1.35),
+                           toolbar_location=None)
         fig_graph.axis.visible = False
         fig_graph.grid.visible = False
         edges = fig_graph.segment("x0", "y0", "x1", "y1", source=self.edges, line_color="color", line_width=3,
@@ -160,7 +177,8 @@ class WatchPage:
         nodes = fig_graph.scatter("x", "y", source=self.nodes, size=26, fill_color="color", line_color="black")
         fig_graph.text("x", "y", text="name", source=self.nodes, text_align="center", text_baseline="middle",
                        text_font_size="9pt", text_color="white")
-        hover = fig_graph.select_one(HoverTool)
+        hover = fig_graph.select_one({"type": HoverTool})
+        assert isinstance(hover, HoverTool)  # tools="hover,save" above
         hover.renderers = [nodes, edges]
         hover.tooltips = [("", "@name @link"), ("state", "@state"), ("faults", "@faults")]
 
@@ -211,7 +229,7 @@ class WatchPage:
             row(self.readout, self.summary),
             row(fig_cost, fig_terminal, fig_graph),
             self.agents,
-            gridplot(panels, ncols=4, toolbar_location="right", merge_tools=True),
+            gridplot([*panels], ncols=4, toolbar_location="right", merge_tools=True),
         ]
         self.built = True
 
@@ -231,7 +249,7 @@ class WatchPage:
 
     # -- data ------------------------------------------------------------------------------------
     def _terminal_columns(self, rows: list[StateRow]) -> dict[str, list]:
-        data = {"k": [r.k for r in rows], "beta": [r.beta for r in rows]}
+        data: dict[str, list[Any]] = {"k": [r.k for r in rows], "beta": [r.beta for r in rows]}
         for i, xs in enumerate(self.meta.state_slices()[:SHOWN]):
             data[f"a{i}"] = [max((abs(v) for v in r.alpha[xs]), default=math.nan) for r in rows]
         return data
@@ -239,7 +257,7 @@ class WatchPage:
     def _state_columns(self, rows: list[StateRow]) -> list[dict]:
         """Data for the terminal plot and each subsystem's state plot."""
         ks = [r.k for r in rows]
-        out = [self._terminal_columns(rows)]
+        out: list[dict[str, list[Any]]] = [self._terminal_columns(rows)]
         for sub, xs in zip(self.meta.subsystems[:SHOWN], self.meta.state_slices()):
             data = {"k": list(ks)}  # each source its own lists: streaming extends them in place
             for j in range(sub.n):
@@ -250,7 +268,7 @@ class WatchPage:
     def _step_columns(self, rows: list[StepRow]) -> list[dict]:
         """Data for the cost plot, each subsystem's input plot and each subsystem's targets."""
         ks = [r.k for r in rows]
-        out = [{"k": ks, "J": [r.J for r in rows]}]
+        out: list[dict[str, list[Any]]] = [{"k": ks, "J": [r.J for r in rows]}]
         for sub, us in zip(self.meta.subsystems[:SHOWN], self.meta.input_slices()):
             data = {"k": list(ks)}
             for j in range(sub.m):
@@ -296,8 +314,8 @@ class WatchPage:
             self.epoch = snap.epoch
             self.state_rows, self.step_rows, self.state_ks, self.step_ks = [], [], [], []
             self.shown_states = self.shown_steps = -1  # anything differs: the sources are replaced
-            if self.history is not None:
-                self.history = AgentHistory(self.meta)
+            if self._history is not None:
+                self._history = AgentHistory(self.meta)
         self.state_rows += snap.state_rows
         self.step_rows += snap.step_rows
         self.state_ks += [r.k for r in snap.state_rows]
@@ -317,7 +335,7 @@ class WatchPage:
                 self.slider.value = last  # calls _on_slider
             else:
                 self._refresh()
-        self._update_text()
+        self._update_text(snap)
 
     def _show_tracking(self, rows: list[StepRow]) -> None:
         """Show the targets once a step has them, and a subsystem's setpoints once one of its
@@ -382,7 +400,7 @@ class WatchPage:
         self._update_agents(n_steps)
         self._update_graph(n_steps)
         snap = self.snap
-        _set(self.summary, "text", summary_html(snap.summary, snap.summary_from) if snap.summary else (
+        _set(self.summary, "text", summary_html(snap.summary, snap.summary_from) if snap and snap.summary else (
             "<i>the verdict and summary appear here when the run ends</i>"))
 
     def _alive_now(self) -> dict[str, bool] | None:
@@ -427,8 +445,7 @@ class WatchPage:
         _set(self.nodes, "data", nodes)
         _set(self.edges, "data", edges)
 
-    def _update_text(self) -> None:
-        snap = self.snap
+    def _update_text(self, snap: Snapshot) -> None:
         meta = snap.meta
         if meta is None:
             self.header.text = (f"<h2>dmpc watch</h2>run {html.escape(snap.run_id or '?')} · "
@@ -445,14 +462,13 @@ class WatchPage:
             missing = (self.step_ks[-1] + 1 - done) if self.step_ks else 0
             gap = f" ({missing} not received)" if missing else ""
             self.counter.text = (f"step <b class='dmpc-step'>{done}</b> of {meta.steps}{gap} · "
-                                 f"<span class='dmpc-run-state'>{self._run_state()}</span>")
+                                 f"<span class='dmpc-run-state'>{self._run_state(snap)}</span>")
         notes = [snap.connection] if snap.connection else []
         if snap.dropped:
             notes.append(f"{snap.dropped} messages or lines could not be used ({'; '.join(snap.problems[:2])})")
         self.status.text = "<small>" + " · ".join(html.escape(n) for n in notes) + "</small>"
 
-    def _run_state(self) -> str:
-        snap = self.snap
+    def _run_state(self, snap: Snapshot) -> str:
         if snap.summary is not None:
             return f"ended, verdict {html.escape(verdict_of(snap.summary))}"
         if snap.ended:
@@ -493,7 +509,8 @@ def _set(model, attr: str, value) -> None:
 
 
 def page_factory(state: RunState, live: bool):
-    """A Bokeh application function that gives each browser tab its own page."""
+    """A Bokeh application function that gives each browser tab its own page of the run ``state``;
+    ``live``: the run is watched over the bus."""
 
     def make(doc) -> None:
         WatchPage(doc, state, live)

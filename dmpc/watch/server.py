@@ -29,7 +29,8 @@ def url_host(address: str) -> str:
 
 
 def origins(address: str, port: int) -> list[str]:
-    """The hosts a browser may open the page's websocket from.
+    """The hosts a browser may open the page's websocket from, for a page served on ``address``
+    and ``port``.
 
     On loopback: ``localhost`` and ``127.0.0.1``. On another address: that address too, and
     every host when listening on all interfaces (the page is read-only; the address is the
@@ -88,7 +89,8 @@ class WatchServer:
         return self._port
 
     def serve(self, on_ready: Callable[[str], None] | None = None) -> None:
-        """Serve until Ctrl-C or SIGTERM (raised as KeyboardInterrupt), then stop."""
+        """Serve until Ctrl-C or SIGTERM (raised as KeyboardInterrupt), then stop; ``on_ready`` is called
+        with the page's address once it is served."""
         self._server.start()
         if self._poll is not None:
             self._poll.start()
@@ -112,4 +114,5 @@ class WatchServer:
 
 
 def announce(url: str) -> None:
+    """Print the live view's address ``url``."""
     print(f"live view: {url} (Ctrl-C to stop)", file=sys.stdout, flush=True)

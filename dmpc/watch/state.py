@@ -17,11 +17,12 @@ from dmpc.watch.meta import RunMeta
 
 
 def floats(values) -> list[float]:
-    """A JSON list of numbers (None for NaN) as floats."""
+    """The JSON list of numbers ``values`` (None for NaN) as floats."""
     return [math.nan if v is None else float(v) for v in values]
 
 
 def number(value) -> float:
+    """The JSON number ``value`` as a float (None: NaN)."""
     return math.nan if value is None else float(value)
 
 
@@ -38,7 +39,14 @@ class StateRow:
 @dataclass(frozen=True)
 class Targets:
     """What step k tracked (docs/scenarios.md, "Setpoints: `setpoints`"): the target it applied and
-    the setpoint requested (NaN where free), for the states (n,) and the inputs (m,)."""
+    the setpoint requested (NaN where free), for the states (n,) and the inputs (m,).
+
+    Attributes
+    ----------
+    x, u : list of float
+        The target applied: x_s (n,) and u_s (m,).
+    setpoint, setpoint_u : list of float
+        The setpoint requested for the states (n,) and the inputs (m,)."""
 
     x: list[float]
     u: list[float]
@@ -54,7 +62,21 @@ class StepRow:
     without setpoints), whose line has no targets. ``solve_reason`` (M,) says, with an event
     trigger, why each agent solved ("" where it kept its plan or solved in a step of several
     rounds); None without a trigger. ``rounds`` counts the step's Jacobi rounds.
-    """
+
+    Attributes
+    ----------
+    k : int
+    u : list of float
+        The inputs applied, u(k) (m,).
+    J : float
+        The cost J(k).
+    status, fallback, fallback_reason, solve_time, latency : list
+        Per agent (M,): its QP's status, whether it fell back and why, its solve time and its plan's
+        latency (s).
+    step_time : float
+        The step's wall time (s; NaN when not timed).
+    note : str
+        What the records say of the step ("" if nothing)."""
 
     k: int
     u: list[float]
@@ -134,7 +156,34 @@ def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, Sta
 
 @dataclass
 class Snapshot:
-    """What a reader gets from :meth:`RunState.read`: new rows since its last read, and the rest."""
+    """What a reader gets from :meth:`RunState.read`: new rows since its last read, and the rest.
+
+    Attributes
+    ----------
+    epoch : int
+        Changes when rows arrived out of order: the reader starts over.
+    version : int
+        Changes with every change of the state.
+    state_rows, step_rows : list
+        The rows added since the reader's last read (every row in a new epoch).
+    meta : RunMeta or None
+        The run's description, once it has come.
+    plant : dict
+        The plant's last status (liveliness, readiness, dropped messages).
+    alive : dict of str -> bool
+        The liveliness of each role seen.
+    summary : dict or None
+        The run's summary, once it has ended; ``summary_from`` says where it came from.
+    summary_from : str
+    connection : str
+        The observer's connection, in words.
+    ended : bool
+        The run has a summary, or its plant is gone.
+    dropped : int
+        Messages or lines that could not be used; ``problems``: the first few reasons.
+    problems : list of str
+    source, run_id : str
+        Where the data comes from, and the run's id."""
 
     epoch: int
     version: int
@@ -189,6 +238,7 @@ class RunState:
         self.version += 1
 
     def set_meta(self, meta: RunMeta) -> None:
+        """The run's description ``meta`` (the first one counts)."""
         with self._lock:
             if self.meta is None:
                 self.meta = meta
@@ -216,11 +266,13 @@ class RunState:
             return True
 
     def set_plant(self, status: dict) -> None:
+        """The plant's status ``status`` (liveliness, readiness, dropped messages) now."""
         with self._lock:
             self.plant = dict(status)
             self._changed()
 
     def set_alive(self, role: str, alive: bool) -> None:
+        """The liveliness token of ``role`` appeared (``alive``) or went; the coordinator's going ends the run."""
         with self._lock:
             self.alive[role] = alive
             if role == keys.COORDINATOR_ROLE and not alive:
@@ -228,7 +280,8 @@ class RunState:
             self._changed()
 
     def set_summary(self, summary: dict, source: str) -> None:
-        """The run's summary; one from the run folder is kept over one from the bus."""
+        """The run's ``summary``, from ``source`` (``run folder`` or the bus); one from the run folder is
+        kept over one from the bus."""
         with self._lock:
             if self.summary_from == "run folder" and source != "run folder":
                 return
@@ -237,13 +290,14 @@ class RunState:
             self._changed()
 
     def set_connection(self, text: str) -> None:
+        """The observer's connection in words, ``text``."""
         with self._lock:
             if text != self.connection:
                 self.connection = text
                 self._changed()
 
     def note_dropped(self, why: str) -> None:
-        """Count a message or line that could not be used (the first few reasons are kept)."""
+        """Count a message or line that could not be used, and why (``why``; the first few reasons are kept)."""
         with self._lock:
             self.dropped += 1
             if len(self.problems) < 5:

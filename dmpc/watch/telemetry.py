@@ -23,7 +23,7 @@ from dmpc.bus import keys
 from dmpc.bus.interface import Broadcast, Bus
 from dmpc.core.errors import DmpcError
 from dmpc.prepared import Prepared
-from dmpc.records.run_folder import jsonable, step_line  # noqa: F401 - step_line: the telemetry's step message
+from dmpc.records.run_folder import jsonable, step_line
 from dmpc.watch.meta import meta_json
 
 KINDS = ("step", "meta", "end")
@@ -37,7 +37,8 @@ plain = jsonable
 
 
 def encode(kind: str, run: str, **fields) -> bytes:
-    """One telemetry message as JSON bytes."""
+    """One telemetry message of ``kind`` (``step``, ``meta``, ``end``) of run ``run``, with ``fields``,
+    as JSON bytes."""
     return json.dumps({"type": kind, "run": run, **plain(fields)}, allow_nan=False,
                       separators=(",", ":")).encode()
 
@@ -72,7 +73,8 @@ def decode(payload: bytes, run: str) -> dict:
 
 
 def plant_status(node) -> dict:
-    """The plant's view of the agents now: liveliness, readiness, dropped messages."""
+    """The plant's view of the agents now, from the CoordinatorNode ``node``: liveliness, readiness,
+    dropped messages."""
     return {"alive": sorted(node.alive), "ready": sorted(node.ready), "rejected": dict(node.rejects.counts),
             "rejected_reasons": dict(node.rejects.reasons), "duplicates": node.coordinator.duplicates}
 
@@ -118,8 +120,8 @@ class Telemetry:
 
     # -- the plant's thread ----------------------------------------------------------------
     def step(self, rec, node) -> None:
-        """Queue a completed step with the plant's status (``node``: the CoordinatorNode) if an observer
-        listens; never blocks."""
+        """Queue the completed step ``rec`` (a StepRecord) with the plant's status (``node``: the
+        CoordinatorNode) if an observer listens; never blocks."""
         if not self.watched:
             return
         if len(self._queue) == self._queue.maxlen:
@@ -133,7 +135,8 @@ class Telemetry:
         self._wake.set()
 
     def close(self, timeout: float = 1.0) -> None:
-        """Send what is queued, stop the thread and undeclare the publishers; idempotent."""
+        """Send what is queued (waiting at most ``timeout`` seconds), stop the thread and undeclare the
+        publishers; idempotent."""
         if self._closing:
             return
         self._closing = True
@@ -180,9 +183,10 @@ class Telemetry:
 
 
 def open_telemetry(bus: Bus, run_id: str, prepared: Prepared) -> Telemetry | None:
-    """Telemetry on the coordinator's bus, or None for a bus that nothing outside the run can
-    observe (the in-memory bus)."""
-    publishers = {kind: bus.broadcast(keys.telemetry(run_id, kind), ENCODING) for kind in KINDS}
-    if any(p is None for p in publishers.values()):
+    """Telemetry of run ``run_id`` (the ``prepared`` run) on the coordinator's bus, or None for a bus that
+    nothing outside the run can observe (the in-memory bus)."""
+    made = {kind: bus.broadcast(keys.telemetry(run_id, kind), ENCODING) for kind in KINDS}
+    publishers = {kind: p for kind, p in made.items() if p is not None}
+    if len(publishers) < len(made):
         return None
     return Telemetry(publishers, run_id, meta_json(prepared, run_id))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import html
 import math
 import re
+from typing import Any
 
 import numpy as np
 
@@ -38,14 +39,15 @@ REASONS = {
 """Why an agent solved, as the event trigger says it (docs/algorithm.md, "Event-triggered DMPC")."""
 
 
-def fmt(value: float, digits: int = 6) -> str:
-    """A number for a person: ``digits`` significant digits, ``-`` when not a number."""
+def fmt(value: float | None, digits: int = 6) -> str:
+    """The number ``value`` for a person: ``digits`` significant digits, ``-`` when not a number."""
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "-"
     return f"{value:.{digits}g}"
 
 
-def ms(seconds: float) -> str:
+def ms(seconds: float | None) -> str:
+    """``seconds`` in milliseconds with two decimals, ``-`` when not a number."""
     return "-" if seconds is None or not math.isfinite(seconds) else f"{seconds * 1e3:.2f}"
 
 
@@ -120,7 +122,8 @@ class AgentHistory:
 
 
 def agent_states(meta: RunMeta, last: StepRow | None, alive: dict[str, bool]) -> list[str]:
-    """Each agent's state in step ``last`` (None: no step yet)."""
+    """Each agent's state in step ``last`` (None: no step yet), for the agents of ``meta``, with the
+    liveliness ``alive`` (name -> alive)."""
     states = []
     for i, name in enumerate(meta.names):
         if not alive[name]:
@@ -137,7 +140,8 @@ def agent_states(meta: RunMeta, last: StepRow | None, alive: dict[str, bool]) ->
 
 def agent_table(meta: RunMeta, history: AgentHistory, n: int, last: StepRow | None,
                 alive_now: dict[str, bool] | None, plant: dict, summary: dict | None) -> dict[str, list]:
-    """The per-agent table after the first ``n`` steps (``last``: the n-th), one row per agent.
+    """The per-agent table of the agents of ``meta`` after the first ``n`` steps of ``history``
+    (``last``: the n-th), one row per agent.
 
     ``alive_now`` (name -> alive), when given, replaces the liveliness the notes tell. Dropped
     messages: those the coordinator dropped from each agent (its ``plant`` status, or the summary's
@@ -177,8 +181,9 @@ def agent_table(meta: RunMeta, history: AgentHistory, n: int, last: StepRow | No
 
 
 def plan_text(status: str, reason: str) -> str:
-    """What an agent did with its plan at a step: ``kept``, ``solved: <why>``, ``solved`` (k = 0,
-    or a step of several rounds, where no reason is given), or ``-`` (no answer)."""
+    """What an agent did with its plan at a step (its ``status`` and ``reason``): ``kept``, ``solved:
+    <why>``, ``solved`` (k = 0, or a step of several rounds, where no reason is given), or ``-``
+    (no answer)."""
     if status == KEPT:
         return "kept"
     if status in NO_ANSWER:
@@ -187,8 +192,9 @@ def plan_text(status: str, reason: str) -> str:
 
 
 def trigger_columns(history: AgentHistory, n: int, last: StepRow | None) -> dict[str, list]:
-    """The event trigger's columns of the agent table after the first ``n`` steps: the plan at
-    the n-th (``plan``, and ``plan_title``, what its reason means), QP solves and plans kept."""
+    """The event trigger's columns of the agent table after the first ``n`` steps of ``history``
+    (``last``: the n-th): the plan at the n-th (``plan``, and ``plan_title``, what its reason means),
+    QP solves and plans kept."""
     names = history.names
     reasons = (last.solve_reason if last is not None else None) or [""] * len(names)
     plans = [plan_text(last.status[i], reasons[i]) if last else "-" for i in range(len(names))]
@@ -220,7 +226,8 @@ def table_html(columns: dict[str, list]) -> str:
 
 
 def positions(meta: RunMeta) -> dict[str, tuple[float, float]]:
-    """Where each node of the graph is drawn: the agents on a circle, the coordinator at its centre."""
+    """Where each node of the graph of ``meta`` is drawn: the agents on a circle, the coordinator at
+    its centre."""
     M = meta.M
     pos = {COORDINATOR: (0.0, 0.0)}
     for i, name in enumerate(meta.names):
@@ -240,7 +247,7 @@ def _fault_text(meta: RunMeta, source: str, target: str) -> str:
 
 
 def link_state(a: str, b: str) -> str:
-    """A link's state from the states of its two ends."""
+    """A link's state from the states of its two ends ``a`` and ``b``."""
     ends = {a, b}
     if "lost" in ends:
         return "down"
@@ -252,14 +259,15 @@ def link_state(a: str, b: str) -> str:
 
 
 def graph_tables(meta: RunMeta, states: list[str], coordinator_alive: bool = True) -> tuple[dict, dict]:
-    """Nodes and links of the communication graph: (nodes, edges) columns.
+    """Nodes and links of the communication graph of ``meta``, with each agent's state in ``states``
+    and the coordinator's liveliness ``coordinator_alive``: (nodes, edges) columns.
 
     Links are the neighbour pairs (each agent receives its neighbours' plans) and the coordinator's
     link to every agent (releases and plans).
     """
     pos = positions(meta)
     by_name = dict(zip(meta.names, states))
-    nodes = {"x": [pos[COORDINATOR][0]], "y": [pos[COORDINATOR][1]], "name": [COORDINATOR],
+    nodes: dict[str, list[Any]] = {"x": [pos[COORDINATOR][0]], "y": [pos[COORDINATOR][1]], "name": [COORDINATOR],
              "state": ["alive" if coordinator_alive else "gone"],
              "color": [COLORS[COORDINATOR] if coordinator_alive else COLORS["lost"]]}
     for name, state in by_name.items():
@@ -268,7 +276,8 @@ def graph_tables(meta: RunMeta, states: list[str], coordinator_alive: bool = Tru
         nodes["name"].append(name)
         nodes["state"].append(state)
         nodes["color"].append(COLORS[state])
-    edges = {key: [] for key in ("x0", "y0", "x1", "y1", "link", "state", "color", "dash", "faults")}
+    edge_keys = ("x0", "y0", "x1", "y1", "link", "state", "color", "dash", "faults")
+    edges: dict[str, list[Any]] = {key: [] for key in edge_keys}
     links = [(a, b, "plans") for a, b in meta.edges] + [(COORDINATOR, name, "release/plan") for name in meta.names]
     for a, b, what in links:
         state = link_state(by_name.get(a, "ok" if coordinator_alive else "lost"), by_name[b])
@@ -285,7 +294,8 @@ def graph_tables(meta: RunMeta, states: list[str], coordinator_alive: bool = Tru
 
 
 def readout_html(meta: RunMeta, row: StateRow | None, step: StepRow | None, shown: int = 8) -> str:
-    """The values at the shown step: beta(k), J(k), and x_i(k), u_i(k), alpha_i(k) of the first
+    """The values at the shown step (its state ``row`` and ``step``; None where there is none) of the
+    run ``meta``: beta(k), J(k), and x_i(k), u_i(k), alpha_i(k) of the first
     ``shown`` subsystems; with setpoints also the target x_s,i(k) applied and the setpoint (``-``
     where free)."""
     if row is None:
@@ -322,7 +332,8 @@ def verdict_of(summary: dict) -> str:
 
 
 def summary_html(summary: dict | None, source: str = "") -> str:
-    """The run's verdict and key figures once it has ended (empty before)."""
+    """The run's verdict and key figures from its ``summary`` once it has ended (empty before);
+    ``source`` says where the summary came from."""
     if summary is None:
         return ""
     verdict = verdict_of(summary)

@@ -1,0 +1,139 @@
+"""The coordinator's setpoints: requests that arrive while the run goes on, their checks and
+answers, and the tracker that decides each step's target (docs/algorithm.md, "Setpoints";
+docs/protocol.md, "Setpoints while a run goes on").
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dmpc.bus.messages import Setpoint, SetpointAnswer
+from dmpc.core.system import CoupledSystem, LinearSet
+from dmpc.methods import lacks
+from dmpc.security.rejects import MAX_MAGNITUDE
+from dmpc.tracking.schedule import SetpointEntry
+from dmpc.tracking.targets import Target
+from dmpc.tracking.tracker import Tracker, TrackingStep
+
+
+class SetpointIntake:
+    """The setpoints of one run.
+
+    Parameters
+    ----------
+    system : CoupledSystem
+    run_id : str
+    steps : int
+        The run's length: a request must hold from a step before it.
+    tracker : Tracker or None
+        The targets (with the scenario's schedule); None for a method that does not track
+        setpoints: every step is controlled around the origin, and requests are refused.
+    method : str
+        The run's method (a refusal for lack of a tracker names it).
+
+    Attributes
+    ----------
+    origin : Target
+        The target of every step while nothing is tracked (and of step 0).
+    """
+
+    def __init__(self, system: CoupledSystem, run_id: str, steps: int, tracker: Tracker | None,
+                 method: str) -> None:
+        self.system = system
+        self.method = method
+        self.run_id = run_id
+        self.steps = steps
+        self.tracker = tracker
+        self.names = [s.name for s in system.subsystems]
+        self.index = {name: i for i, name in enumerate(self.names)}
+        self.origin = Target.origin(system.n, system.m)
+
+    def answer(self, msg: Setpoint, first_undecided: int, finished: bool) -> tuple[SetpointAnswer, str]:
+        """Take the request ``msg`` from step ``first_undecided`` (the first step whose target is not
+        decided yet), or refuse it and say why.
+
+        Accepted, it joins the tracker's schedule from that step (NaN where free; an empty x or u
+        leaves every component free). Refused (also a run that is ``finished``), nothing changes.
+
+        Returns
+        -------
+        (SetpointAnswer, note)
+            The answer: accepted with ``k`` the first step the request holds at, or refused
+            (``k`` = -1) with the reason. ``note``: what the record of the step it arrived in says
+            of it ("" when refused).
+        """
+        try:
+            problem = self.problem(msg, first_undecided, finished)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the run
+            problem = f"malformed: {type(exc).__name__}"
+        if problem is not None:
+            return SetpointAnswer(self.run_id, msg.id, msg.subsystem, False, -1, problem), ""
+        assert self.tracker is not None  # checked by problem()
+        i, at = self.index[msg.subsystem], first_undecided
+        sub = self.system.subsystems[i]
+        x, u = _request_part(msg.x, sub.n), _request_part(msg.u, sub.m)
+        self.tracker.add(SetpointEntry(at=at, index=i, x=x, u=u, source=msg.sender))
+        note = (f"setpoint from {msg.sender} (id {msg.id}): subsystem {msg.subsystem} "
+                f"{_components_text('x', x)}, {_components_text('u', u)} from step {at}")
+        return SetpointAnswer(self.run_id, msg.id, msg.subsystem, True, at), note
+
+    def problem(self, msg: Setpoint, first_undecided: int, finished: bool) -> str | None:
+        """Why the request cannot be taken from step ``first_undecided``, or None."""
+        if msg.run != self.run_id:
+            return f"wrong run id '{msg.run}' (this run is '{self.run_id}')"
+        if self.tracker is None:
+            lacking = lacks(self.method, "tracks_setpoints")
+            return str(lacking) if lacking is not None else f"this run of method '{self.method}' has no tracker"
+        if finished:
+            return "the run is finished"
+        if first_undecided >= self.steps:
+            return f"too late: the run's last step ({self.steps - 1}) is already decided"
+        i = self.index.get(msg.subsystem)
+        if i is None:
+            shown = ", ".join(self.names[:8]) + (", ..." if len(self.names) > 8 else "")
+            return f"unknown subsystem '{msg.subsystem}' (known: {shown})"
+        sub = self.system.subsystems[i]
+        return (_component_problem(np.asarray(msg.x, dtype=float), "x", sub.n, sub.state_set, msg.subsystem)
+                or _component_problem(np.asarray(msg.u, dtype=float), "u", sub.m, sub.input_set, msg.subsystem))
+
+    def close_step(self, k: int, eta: np.ndarray) -> tuple[TrackingStep | None, Target]:
+        """What step k tracked and the target of step k + 1, from the terminal states eta (n,) of
+        step k's plans: (None, the origin) without a tracker; (the tracker's idle step, the origin)
+        while nothing was ever requested."""
+        if self.tracker is None:
+            return None, self.origin
+        if not self.tracker.active:
+            return self.tracker.idle, self.origin
+        return self.tracker.step(k), self.tracker.advance(k + 1, eta)
+
+
+def _request_part(values: np.ndarray, size: int) -> np.ndarray:
+    """A subsystem's requested components (size,), NaN where free: ``values`` or, empty, all free."""
+    values = np.asarray(values, dtype=float)
+    return np.full(size, np.nan) if values.size == 0 else values.copy()
+
+
+def _component_problem(values: np.ndarray, kind: str, size: int, bounds: LinearSet | None, name: str) -> str | None:
+    """Why the requested states (``kind`` x) or inputs (u) of subsystem ``name`` cannot be taken, or
+    None: ``size`` entries or none, NaN or finite, inside a box X_i or U_i (a polytope's are left to
+    the target, which keeps inside it)."""
+    if values.ndim != 1 or values.size not in (0, size):
+        what = f"n_i = {size} states" if kind == "x" else f"m_i = {size} inputs"
+        return f"{kind}: expected {size} entries ({what} of subsystem '{name}') or none, got {values.size}"
+    for c, value in enumerate(values):
+        if math.isnan(value):
+            continue
+        if not abs(value) <= MAX_MAGNITUDE:
+            return f"{kind}[{c}]: expected a finite number up to {MAX_MAGNITUDE:g} in size, or NaN for a free one"
+        if bounds is not None and bounds.is_box and not bounds.lower[c] <= value <= bounds.upper[c]:
+            return (f"{kind}[{c}]: the target {value:g} of subsystem '{name}' is outside "
+                    f"{'X_i' if kind == 'x' else 'U_i'} [{bounds.lower[c]:g}, {bounds.upper[c]:g}]")
+    return None
+
+
+def _components_text(kind: str, values: np.ndarray) -> str:
+    """``x = [1, free]``, or ``x free`` when nothing is requested."""
+    if np.isnan(values).all():
+        return f"{kind} free"
+    return f"{kind} = [{', '.join('free' if math.isnan(v) else f'{v:g}' for v in values)}]"
