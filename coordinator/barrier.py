@@ -220,7 +220,7 @@ class Coordinator:
         return self._complete_step(pending, self._x)
 
     def on_plan(self, msg: PlanMessage) -> tuple[list[Action], str | None]:
-        """A plan arrived: accept it, or drop it and say why.
+        """A plan ``msg`` arrived: accept it, or drop it and say why.
 
         Returns
         -------
@@ -260,7 +260,7 @@ class Coordinator:
         return self._close_round_if_due(), None
 
     def check(self, msg: PlanMessage) -> str | None:
-        """None if the plan belongs to the open round and has the right shapes; else the reason."""
+        """None if the plan ``msg`` belongs to the open round and has the right shapes; else the reason."""
         return self._guard.plan_problem(msg, self.k, self.round)
 
     def has_plan(self, name: str) -> bool:
@@ -304,7 +304,7 @@ class Coordinator:
         return True
 
     def on_setpoint(self, msg: Setpoint) -> SetpointAnswer:
-        """A setpoint request of a supervisory program: take it from the first step whose target
+        """A setpoint request ``msg`` of a supervisory program: take it from the first step whose target
         is not decided yet (k + 1, or k + 2 while step k's state is awaited from a plant outside),
         or refuse it and say why (:meth:`SetpointIntake.answer
         <dmpc.coordinator.setpoint_intake.SetpointIntake.answer>`). Accepted, the record of the

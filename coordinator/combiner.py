@@ -115,7 +115,8 @@ class RoundCombiner(Protocol):
         ...
 
     def released_plans(self, step: OpenStep, last_plan: Sequence[Plan | None]) -> ReleasedPlans:
-        """The plans the release of ``step``'s open round names."""
+        """The plans the release of ``step``'s open round names, given each agent's plan of a step before
+        (``last_plan``, None where it never had one)."""
         ...
 
 
@@ -161,7 +162,7 @@ class JacobiRounds:
         return None
 
     def close_round(self, step: OpenStep, closed: ClosedRound) -> RoundOutcome:
-        """The round's usable answers become the agents' plans of the step; another round follows
+        """The ``closed`` round's usable answers become the agents' plans of the step; another round follows
         while rounds are left, nobody missed this one and the plans still moved by the tolerance
         or more (round 0 never converges)."""
         step.take_round(closed.answers, self.refusals.usable)
@@ -180,7 +181,8 @@ class JacobiRounds:
         return FinishStep(lambda: change)
 
     def released_plans(self, step: OpenStep, last_plan: Sequence[Plan | None]) -> ReleasedPlans:
-        """Each agent's reference (:meth:`OpenStep.reference`), and the seeded plans among them."""
+        """Each agent's reference in the open round of ``step`` (:meth:`OpenStep.reference`, from
+        ``last_plan``, each agent's plan of a step before), and the seeded plans among them."""
         assumed = np.full((self.system.M, 2), -1, dtype=np.int64)
         references = [step.reference(j, last_plan) for j in range(self.system.M)]
         for j, ref in enumerate(references):

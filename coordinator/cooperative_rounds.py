@@ -71,14 +71,33 @@ class CooperativeCombiner:
             step.add_note(first.note)
 
     def released_plans(self, step: OpenStep, last_plan: Sequence[Plan | None]) -> ReleasedPlans:
-        """No neighbour plan is named (every row (-1, -1)): the release carries the iterate."""
+        """No neighbour plan is named (every row (-1, -1)): the release carries the iterate.
+
+        Parameters
+        ----------
+        step : OpenStep
+            The open step (its iterate is this combiner's, set by :meth:`step_started`).
+        last_plan : sequence of Plan or None
+            Per agent, its last plan: unused, as no release of the method names one.
+        """
         assert self.iterate is not None, "step_started opens every step"
         return ReleasedPlans(np.full((self.system.M, 2), -1, dtype=np.int64),
                              iterate=(self.iterate.z, self.iterate.v))
 
     def close_round(self, step: OpenStep, closed: ClosedRound) -> RoundOutcome:
         """Combine the round's usable proposals into the next iterate; another round while rounds
-        are left, nobody missed this one and the iterate moved by the tolerance or more."""
+        are left, nobody missed this one and the iterate moved by the tolerance or more.
+
+        Parameters
+        ----------
+        step : OpenStep
+            The open step: it takes the round's answers (as proposals, none of them the step's
+            plan), and its step, round and target decide the rounds allowed, the tolerance and the
+            coordinates.
+        closed : ClosedRound
+            The closed round: its answers (each usable one's v (N, m_i) a proposal), who missed it
+            and the step's terminal box.
+        """
         assert self.iterate is not None, "step_started opens every step"
         step.take_round(closed.answers, lambda i, msg: False)  # the answers are proposals, not the step's plans
         proposals = {i: msg.v for i, msg in closed.answers.items() if self.refusals.usable(i, msg)}
@@ -96,7 +115,15 @@ class CooperativeCombiner:
     def agent_steps(self, step: OpenStep, lost: set[int]) -> list[AgentStep]:
         """Every agent's part of the step from the last iterate: its inputs, states, terminal state and
         its subsystem's part of the cost. An agent whose last answer was not a usable proposal kept
-        its inputs at the iterate: recorded as a fallback, with the reason."""
+        its inputs at the iterate: recorded as a fallback, with the reason.
+
+        Parameters
+        ----------
+        step : OpenStep
+            The closing step, with each agent's last answer.
+        lost : set of int
+            The agents lost now: one without an answer is recorded as ``lost`` rather than ``missed``.
+        """
         assert self.iterate is not None, "step_started opens every step"
         parts = self.rounds.parts(self.iterate, step.target)
         agents = []

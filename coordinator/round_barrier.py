@@ -45,7 +45,16 @@ class RoundBarrier:
         return i in self.answers or i in self.missed
 
     def accept(self, i: int, msg: PlanMessage) -> None:
-        """Agent i's answer of the open round."""
+        """Take agent i's answer of the open round.
+
+        Parameters
+        ----------
+        i : int
+            The agent's index.
+        msg : PlanMessage
+            Its answer, already checked (a kept plan as a message of status ``kept``); it replaces
+            one taken before in the round.
+        """
         self.answers[i] = msg
 
     def deadline_passed(self) -> None:

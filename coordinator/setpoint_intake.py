@@ -79,7 +79,18 @@ class SetpointIntake:
         return SetpointAnswer(self.run_id, msg.id, msg.subsystem, True, at), note
 
     def problem(self, msg: Setpoint, first_undecided: int, finished: bool) -> str | None:
-        """Why the request cannot be taken from step ``first_undecided``, or None."""
+        """Why the request cannot be taken from step ``first_undecided``, or None.
+
+        Parameters
+        ----------
+        msg : Setpoint
+            The request: its run and subsystem, and the x (n_i,) and u (m_i,) it asks for (or
+            (0,): all free), each finite or NaN and inside a box X_i or U_i.
+        first_undecided : int
+            The first step whose target is not decided yet, where the request would hold from.
+        finished : bool
+            The run is over (no request is taken then).
+        """
         if msg.run != self.run_id:
             return f"wrong run id '{msg.run}' (this run is '{self.run_id}')"
         if self.tracker is None:

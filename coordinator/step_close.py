@@ -27,9 +27,36 @@ from dmpc.tracking.tracker import TrackingStep
 
 @dataclass(frozen=True)
 class AgentStep:
-    """One agent's part of a step record: its input u_i (m_i,), terminal state eta_i (n_i,),
-    cost, what its answer said, and the plan the step recorded for it, z (N+1, n_i), v (N, m_i).
-    ``plan``: its plan of the step, which becomes its last plan (None for a fallback)."""
+    """One agent's part of a step record.
+
+    Attributes
+    ----------
+    u : ndarray, shape (m_i,)
+        The input applied.
+    eta : ndarray, shape (n_i,)
+        Its terminal state (of its plan, or of its fallback's candidate).
+    J : float
+        Its part of the step's cost.
+    status : str
+        What its answer said (the QP status, ``kept``, or ``missed``).
+    fallback : bool
+        True where its plan of the step was not usable.
+    reason : str
+        Why it fell back ("" otherwise).
+    solve_time : float
+        Seconds in its solver (NaN without an answer).
+    qp_iterations : int
+        Its solver's iterations.
+    latency : float
+        Seconds from its answer's publication to its acceptance (NaN without one).
+    z : ndarray, shape (N+1, n_i)
+    v : ndarray, shape (N, m_i)
+        The plan the step recorded for it.
+    solved_because : str
+        Why it solved rather than kept (an event trigger; "" otherwise).
+    plan : Plan or None
+        Its plan of the step, which becomes its last plan (None for a fallback).
+    """
 
     u: np.ndarray
     eta: np.ndarray
@@ -48,10 +75,35 @@ class AgentStep:
 
 @dataclass(frozen=True)
 class PendingStep:
-    """What a completed step's record is made of, fixed when the step closes: the state x(k) (n,),
-    inputs u (m,), terminal sets before and after, rounds, each agent's part, note, the last
-    round's plan change (measured when the record is built), what the step tracked and the next
-    step's target."""
+    """What a completed step's record is made of, fixed when the step closes.
+
+    Attributes
+    ----------
+    k : int
+    x : ndarray, shape (n,)
+        The state x(k).
+    u : ndarray, shape (m,)
+        The inputs applied.
+    alpha : ndarray, shape (n,)
+    beta : float
+        The terminal sets of step k (box centres and radius).
+    rounds : int
+    agents : list of AgentStep
+        Each agent's part.
+    note : str
+    r : ndarray, shape (M,), or None
+        The ellipsoid levels of step k (the ellipsoid methods).
+    terminal : TerminalState
+        The terminal sets of step k+1.
+    max_change : callable () -> float
+        The last round's plan change (measured when the record is built).
+    target : Target
+        The target of the next step.
+    tracking : TrackingStep or None
+        What the step tracked.
+    triggered : bool
+        An event trigger: the record says why each agent solved.
+    """
 
     k: int
     x: np.ndarray
@@ -69,7 +121,8 @@ class PendingStep:
     triggered: bool = False  # an event trigger: the record says why each agent solved
 
     def record(self, x_next: np.ndarray, step_time: float, system: CoupledSystem) -> StepRecord:
-        """The step's record, with x(k+1) (n,) and the step's wall time (s)."""
+        """The step's record, with ``x_next`` = x(k+1) (n,), ``step_time`` the step's wall time (s)
+        and the ``system`` (for the spread S(x))."""
         agents, nxt = self.agents, self.terminal
         J_agents = [a.J for a in agents]
         return StepRecord(
@@ -148,8 +201,9 @@ class StepCloser:
     def agent_step(self, i: int, x_i: np.ndarray, step: OpenStep, terminal: TerminalState, last: Plan | None,
                    lost: set[int]) -> AgentStep:
         """Agent i's part of ``step`` from the measured x_i (n_i,): its plan of the step, or its
-        fallback (the shifted candidate of its ``last`` plan, input projected onto U_i), with what
-        the record says of it."""
+        fallback (the shifted candidate of its ``last`` plan, input projected onto U_i, its
+        terminal state as the method's ``terminal`` sets of step k give it), with what the record
+        says of it (``lost``: the agents lost now, whose fallback reason says so)."""
         msg = step.answers.get(i)
         plan = step.latest.get(i)
         point = step.point.subsystem(self.system, i)

@@ -280,3 +280,25 @@ def test_non_finite_values_are_found_whatever_the_other_values(z, bad, at, statu
             decode(encode(msg))
     else:
         assert np.array_equal(decode(encode(msg)).z, z, equal_nan=True)
+
+
+def _cooperative_release(z: np.ndarray, v: np.ndarray) -> Release:
+    return Release(run="r", k=2, round=1, x=np.zeros(3), centres=np.zeros(3), sizes=np.ones(2),
+                   assumed=np.full((2, 2), -1), iterate=(z, v))
+
+
+def test_release_with_a_cooperative_iterate_round_trips():
+    z, v = np.arange(12.0).reshape(4, 3), np.arange(6.0).reshape(3, 2)
+    msg = _cooperative_release(z, v)
+    assert messages_equal(decode(encode(msg)), msg)
+    assert "iterate" not in msgpack.unpackb(encode(Release(run="r", k=1, round=0, x=np.zeros(3), centres=np.zeros(3),
+                                                           sizes=np.ones(2), assumed=np.full((2, 2), -1))), raw=False)
+
+
+@pytest.mark.parametrize("z, v", [
+    (np.zeros((4, 2)), np.zeros((3, 2))),  # z's columns are not the state's
+    (np.zeros((3, 3)), np.zeros((3, 2))),  # z needs one row more than v
+])
+def test_release_with_a_malformed_iterate_is_named(z, v):
+    with pytest.raises(DecodeError, match="iterate"):
+        decode(encode(_cooperative_release(z, v)))

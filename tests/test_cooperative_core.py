@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from dmpc.api.scenarios import load_scenario
@@ -216,8 +216,17 @@ cases = dict(seed=seeds, M=st.integers(2, 3), horizon=st.integers(2, 5), factor=
 # ================================================================ 2. CooperativeQP
 
 @settings(max_examples=30, deadline=None)
+# found by this test: OSQP's polish with 3 refinement steps left dynamics residuals of 5e-8, and the
+# proposal's own states missed a terminal row by 3.7e-7 (fixed: COOPERATIVE_SETTINGS)
+@example(seed=33244, M=3, horizon=5, factor=2.125, target=False, no_own_input=False)
+# found by this test: agent 1's QP (P_i eigenvalues below 6, a random feasible iterate) stops at
+# OSQP's 10 000-iteration cap ("max_iter"; it needs 17 760): the agent has no proposal
+@example(seed=3, M=3, horizon=4, factor=2.5, target=False, no_own_input=False)
 @given(no_own_input=st.booleans(), **cases)
 def test_agent_qp_is_the_restricted_centralised_problem(seed, M, horizon, factor, target, no_own_input):
+    """Agent i's proposal is the minimiser of the centralised problem over v_i, the other agents'
+    inputs at the iterate (cvxpy, Clarabel); its cost is the global cost less the parts v_i cannot
+    move; c(t) is what the rest of the iterate feeds into R; the iterate's own v_i bounds the optimum."""
     case = Case(seed, M, horizon, factor, target, no_own_input=no_own_input)
     system, z, v = case.system, case.z, case.v
     assert case.reach == response_reach(system, horizon)
@@ -274,6 +283,8 @@ def weighted(case: Case, proposals: dict[int, np.ndarray], s: float) -> tuple[np
 @settings(max_examples=30, deadline=None)
 @given(**cases)
 def test_combine_keeps_feasibility_and_lowers_the_cost(seed, M, horizon, factor, target):
+    """(a) feasible, (b) no worse than the iterate and the 1/M combination, (c) "equal" is the 1/M
+    combination, (e) the states are the inputs' response; and "line" is the best feasible weight."""
     case = Case(seed, M, horizon, factor, target)
     proposals = case.proposals()
     model = case.model()
@@ -325,6 +336,29 @@ def test_combine_takes_whole_proposals_of_decoupled_agents(seed, M, horizon, fac
     for i, w in proposals.items():
         np.testing.assert_allclose(done.iterate.v[:, case.us[i]], w, atol=1e-6 * (1.0 + np.abs(w).max()))
     assert case.violation(done.iterate.z, done.iterate.v) <= FEASIBLE
+
+
+@pytest.mark.parametrize("rule", ["line", "equal"])
+def test_combine_keeps_the_iterate_rather_than_raise_its_cost(rule):
+    """Proposals worse than the iterate (a QP solved only to its solver's accuracy near the
+    optimum): the iterate stays, step 0."""
+    case = Case(11, 3, 4, 1.5, True)
+    V0 = case.cost(case.z, case.v)
+    # a small move of every agent's inputs that raises the cost (first order) and keeps every row
+    worse = {}
+    for i in range(3):
+        bump = np.zeros_like(case.v)
+        bump[:, case.us[i]] = 1e-3
+        up = case.cost(simulate(case.A, case.B, case.z[0], case.v + bump), case.v + bump)
+        down = case.cost(simulate(case.A, case.B, case.z[0], case.v - bump), case.v - bump)
+        worse[i] = case.v[:, case.us[i]] + (1e-3 if up > down else -1e-3)
+        assert max(up, down) > V0
+    z_w, v_w = weighted(case, worse, 1.0 / 3)
+    assert case.violation(z_w, v_w) <= 0.0 and case.cost(z_w, v_w) > V0
+    done = combine(case.model(), Iterate(case.z, case.v), worse, case.x_s, case.u_s, case.alpha, case.beta, rule)
+    assert done.step == 0.0 and done.cost_after == done.cost_before
+    np.testing.assert_array_equal(done.iterate.v, case.v)
+    np.testing.assert_array_equal(done.iterate.z, case.z)
 
 
 def test_combine_without_moves_keeps_the_iterate():
@@ -379,13 +413,30 @@ def scenario_mapping(rng: np.random.Generator, M: int, factor: float, horizon: i
                 options=dict(method="tv-box-coop"))
 
 
-STEPS = 25
+STEPS = 40
 
 
+@pytest.mark.slow  # about 25 s, most of it in the designs' terminal sets
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.filter_too_much, HealthCheck.too_slow])
+# found by this test: at k = 0, from the centralised plan, agent 2's QP stops at OSQP's iteration
+# cap as "solved_inaccurate", its proposal misses a terminal row by 1.8e-6, and the combined
+# iterate misses it by 6.0e-7 (P_i up to 6.5e5: a badly conditioned design)
+@example(seed=75, M=3, factor=2.2095758978529947, horizon=7, rounds=3, rule="line")
+# found by this test: the centralised QP of the first iterate needed more than OSQP's default
+# 10 000 iterations, and unpolished proposals raised the cost of that (optimal) iterate (both fixed
+# in dmpc/cooperative); still open: the unpolished proposals ("solved", rows missed by 1.1e-7) make
+# the combined iterate miss a row by 1.0e-7 to 1.3e-7 in the k = 0 rounds
+@example(seed=24, M=3, factor=0.6353565247232662, horizon=7, rounds=2, rule="equal")
 @given(seed=seeds, M=st.integers(2, 3), factor=factors, horizon=st.integers(4, 7), rounds=st.integers(1, 3),
        rule=st.sampled_from(["line", "equal"]))
 def test_closed_loop_on_random_input_coupled_systems(seed, M, factor, horizon, rounds, rule):
+    """The loop the coordinator runs, on the model: the first iterate, Jacobi rounds of every
+    agent's CooperativeQP combined, the first inputs applied, the terminal box moved to
+    alpha = (A+BK) eta, beta = sigma(alpha), the iterate shifted. On systems whose neighbours'
+    inputs drive a subsystem as much as its own and more (B_ij of norm 0.5 to 2.5 |B_jj|), with a
+    design and a centrally feasible start: every iterate meets every row of the centralised
+    problem, the cost never rises over a round, the shifted iterate's cost is the last one's less
+    the stage cost (the Lyapunov inequality (10)), and the state converges."""
     rng = np.random.default_rng(seed)
     try:
         prepared = prepare(load_scenario(scenario_mapping(rng, M, factor, horizon, STEPS)))
@@ -429,11 +480,13 @@ def test_closed_loop_on_random_input_coupled_systems(seed, M, factor, horizon, r
     def cost(it):
         return plan_cost(it.z, it.v, Q, R, P)
 
-    it = coop.first(x, target, alpha, beta, (np.eye(system.n), alpha - beta, alpha + beta)).iterate
+    first = coop.first(x, target, alpha, beta, (np.eye(system.n), alpha - beta, alpha + beta))
+    assert violation(first.iterate) <= FEASIBLE, first.note
+    it = first.iterate
     x_norm0 = float(np.abs(x).max())
     unsolved = []
     for k in range(STEPS):
-        assert violation(it) <= FEASIBLE, (k, "start of step")
+        assert violation(it) <= FEASIBLE, (k, "the shifted iterate")
         np.testing.assert_allclose(it.z, simulate(A, B, x, it.v), rtol=1e-9, atol=1e-9)
         for r in range(3 * rounds if k == 0 else rounds):
             proposals = {}
@@ -449,7 +502,7 @@ def test_closed_loop_on_random_input_coupled_systems(seed, M, factor, horizon, r
             before = cost(it)
             it = coop.combine(it, proposals, target, alpha, beta).iterate
             after = cost(it)
-            assert violation(it) <= FEASIBLE, (k, r)
+            assert violation(it) <= FEASIBLE, (k, r, unsolved)
             assert after <= before + 1e-9 * max(1.0, before), (k, r, before, after)
         u = it.v[0].copy()
         stage = float(x @ Q @ x + u @ R @ u)
@@ -462,4 +515,5 @@ def test_closed_loop_on_random_input_coupled_systems(seed, M, factor, horizon, r
         # the shifted iterate: feasible, and its cost at most the last one's less the stage cost
         tolerance = lyapunov * float(eta @ eta) + 1e-9 * max(1.0, last)
         assert cost(it) <= last - stage + tolerance, (k, cost(it), last, stage)
+    assert violation(it) <= FEASIBLE, "the last shifted iterate"
     assert float(np.abs(x).max()) <= 0.05 * x_norm0, (x, unsolved)

@@ -1,5 +1,9 @@
 """The quadruple-tank benchmark: its equilibrium, its linearisation, the nonlinear plant
-(``plant.model: fourtank``) and the shipped scenarios built from them (docs/fourtank.md)."""
+(``plant.model: fourtank``) and the shipped scenarios built from them (docs/fourtank.md).
+
+The shipped files' plant is their linear model; the tests of the nonlinear tanks give
+``plant.model: fourtank`` (and, for fourtank_own, its valve splits) explicitly, as the files'
+comments do (``--set plant.model=fourtank``)."""
 from __future__ import annotations
 
 import subprocess
@@ -24,7 +28,15 @@ from dmpc.plant.fourtank import (
     outflows,
     rates,
 )
-from dmpc.scenario import ScenarioError, build_system, discrete_model, load_scenario, validate_scenario
+from dmpc.scenario import (
+    Scenario,
+    ScenarioError,
+    build_system,
+    discrete_model,
+    load_scenario,
+    parse_override,
+    validate_scenario,
+)
 from dmpc.scenario.schema import FourTankSpec
 from dmpc.setup import prepare
 
@@ -38,10 +50,19 @@ LEVEL_LOW = np.array([0.2, 0.2, 0.2, 0.2])
 LEVEL_HIGH = np.array([1.36, 1.36, 1.30, 1.30])
 OWN_FLOOR = 0.05  # scenarios/fourtank_own.yaml lowers the floor of tanks 3 and 4 to this
 
+# The nonlinear tanks of each file as its comments give them (the files' own plant is the linear model).
+NONLINEAR = {FOURTANK: {"plant.model": "fourtank"},
+             OWN: {"plant.model": "fourtank", "plant.fourtank.gamma": [0.7, 0.6]}}
+
+
+def nonlinear(path: Path) -> Scenario:
+    """The scenario file with the nonlinear tanks it linearises as its plant."""
+    return load_scenario(path, NONLINEAR[path])
+
 
 def tanks_of(path: Path) -> tuple[FourTank, np.ndarray]:
-    """The FourTank and q0 a scenario's plant section describes."""
-    spec = load_scenario(path).plant.fourtank or FourTankSpec()
+    """The FourTank and q0 of a scenario file's nonlinear tanks (its plant section with NONLINEAR)."""
+    spec = nonlinear(path).plant.fourtank or FourTankSpec()
     return FourTank(area=spec.area, outlets=tuple(spec.outlets), gamma=tuple(spec.gamma), g=spec.g), np.array(spec.q0)
 
 
@@ -160,7 +181,7 @@ def test_the_discrete_model_is_the_nonlinear_step_linearised(path):
     """The controllers' discrete matrices against a finite-difference Jacobian of the plant
     function over one period: the whole chain (equilibrium, linearisation, units, partition,
     discretisation) checked end to end."""
-    prepared = prepare(load_scenario(path))
+    prepared = prepare(nonlinear(path))
     system, f = prepared.system, prepared.plant.function
     assert prepared.plant.model == "fourtank" and f is not None
     eps_x, eps_u = 1e-6, 1e-4
@@ -178,7 +199,7 @@ def test_the_discrete_model_is_the_nonlinear_step_linearised(path):
                          ids=["fourtank", "fourtank_own"])
 def test_the_scenario_is_the_linearisation_at_the_exact_equilibrium(path, floors):
     """The continuous-time matrices, the bounds and the units of the file, from the equations."""
-    scn = load_scenario(path)
+    scn = nonlinear(path)
     assert scn.time == "continuous" and scn.dt == 5.0 and scn.plant.model == "fourtank"
     tanks, q0 = tanks_of(path)
     h0 = equilibrium(tanks, q0)
@@ -218,7 +239,15 @@ def test_the_benchmark_setpoints_and_variant():
     asked = [(s.at, s.subsystem, s.x) for s in scn.setpoints]
     assert asked == [(0, "a", {"h1": 0.15}), (0, "b", {"h2": 0.15}), (1500, "a", {"h1": 0.0}), (1500, "b", {"h2": 0.0})]
     assert [(s.at, s.subsystem, s.x) for s in own.setpoints] == asked
-    assert scn.plant.fourtank is None and own.plant.fourtank.gamma == [0.7, 0.6]
+    # the files' plant is their linear model, their method the cooperative one
+    assert scn.plant.model == own.plant.model == "nominal" and scn.plant.fourtank is None and own.plant.fourtank is None
+    assert scn.options.method == own.options.method == "tv-box-coop"
+    # their nonlinear tanks: the benchmark's, and the variant's valve splits, as the files' comments give them
+    assert "--set plant.model=fourtank" in FOURTANK.read_text()
+    assert "--set plant.model=fourtank --set plant.fourtank.gamma=[0.7,0.6]" in OWN.read_text()
+    documented = dict(parse_override(text) for text in ("plant.model=fourtank", "plant.fourtank.gamma=[0.7,0.6]"))
+    assert documented == NONLINEAR[OWN] and {"plant.model": documented["plant.model"]} == NONLINEAR[FOURTANK]
+    assert nonlinear(FOURTANK).plant.fourtank is None and nonlinear(OWN).plant.fourtank.gamma == [0.7, 0.6]
     assert FourTankSpec().gamma == list(FourTank().gamma) and FourTankSpec().outlets == list(FourTank().outlets)
     assert FourTankSpec().area == FourTank().area and FourTankSpec().g == FourTank().g
     assert scn.steps * scn.dt >= 2 * 1500  # each segment 25 min
@@ -228,8 +257,8 @@ def test_the_plant_finds_the_tanks_by_name_in_any_order():
     """Subsystems in the other order: the same physics through the names."""
     data = yaml.safe_load(FOURTANK.read_text())
     data["subsystems"].reverse()
-    swapped = prepare(validate_scenario(data)).plant.function
-    straight = prepare(load_scenario(FOURTANK)).plant.function
+    swapped = prepare(validate_scenario(data, NONLINEAR[FOURTANK])).plant.function
+    straight = prepare(nonlinear(FOURTANK)).plant.function
     x, u = np.array([0.1, -0.05, 0.02, 0.2]), np.array([0.5, -0.3])  # a: h1, h3; b: h2, h4
     out = straight(x, u, 0)
     np.testing.assert_array_equal(swapped(x[[2, 3, 0, 1]], u[[1, 0]], 0), out[[2, 3, 0, 1]])
@@ -245,6 +274,7 @@ def test_the_plant_finds_the_tanks_by_name_in_any_order():
 ])
 def test_plant_model_fourtank_errors_name_the_field(change, field, words):
     data = yaml.safe_load(FOURTANK.read_text())
+    data["plant"] = {"model": "fourtank"}  # the nonlinear tanks; the cases below change or replace it
     for key, value in change.items():
         if key == "subsystems.0.states":
             data["subsystems"][0]["states"] = value
@@ -256,7 +286,7 @@ def test_plant_model_fourtank_errors_name_the_field(change, field, words):
 
 
 def test_the_nonlinear_plant_runs_and_says_so():
-    scenario = dmpc.load_scenario(FOURTANK, steps=12, **{"options.method": "centralized"})
+    scenario = dmpc.load_scenario(FOURTANK, steps=12, **{"options.method": "centralized", "plant.model": "fourtank"})
     result = dmpc.simulate(scenario)
     assert result.summary["plant"]["model"] == "fourtank"
     assert result.summary["plant"]["function"] == "dmpc.plant.fourtank:FourTankPlant"
@@ -271,4 +301,12 @@ def test_the_example_script_prints_the_benchmark():
     out = done.stdout
     assert "partition a = (h1, h3; qa), b = (h2, h4; qb)" in out
     assert "warning: subsystem a's inputs drive b more than a" in out and "tv-box-coop" in out
-    assert "centralized  verdict ok" in out
+    assert "centralized  verdict ok" in out and "tv-box-coop  verdict ok, fallbacks 0" in out
+    assert "closed loop on the nonlinear tanks" in out
+
+
+def test_the_example_script_runs_the_variant_on_its_own_tanks():
+    done = subprocess.run([sys.executable, str(ROOT / "examples" / "fourtank.py"), "--own", "--steps", "5"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "splits gamma_a, gamma_b = (0.7, 0.6)" in done.stdout

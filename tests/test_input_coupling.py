@@ -195,7 +195,8 @@ def test_the_closed_loop_matrix_is_the_method_without_active_constraints(path, r
     data = yaml.safe_load((SCENARIOS / path).read_text())
     data.update(setpoints=[], steps=steps, plant={"model": "nominal"})
     data["subsystems"][0]["x0"], data["subsystems"][1]["x0"] = [0.004, -0.002], [-0.003, 0.002]
-    data.setdefault("options", {})["iterations"] = rounds
+    data.setdefault("options", {})["method"] = "tv-box"  # the files' method is tv-box-coop
+    data["options"]["iterations"] = rounds
     data["options"]["tolerance"] = 1e-300  # every round runs
     scenario = validate_scenario(data)
     result = dmpc.simulate(scenario)
@@ -271,25 +272,42 @@ def test_the_methods_the_check_applies_to():
 # --- what the command line says --------------------------------------------------------------------
 
 def test_validate_warns_on_the_benchmark_in_one_line(monkeypatch, capsys):
-    code, out, err = call(monkeypatch, capsys, "validate", str(FOURTANK))
+    code, out, err = call(monkeypatch, capsys, "validate", str(FOURTANK), "--set", "options.method=tv-box")
     assert code == 0 and "valid" in out
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("warning: subsystem a's inputs drive b more than a")
     assert "--method tv-box-coop" in lines[0] and "unstable" in lines[0]
+    assert "tv-box's closed loop" in lines[0]
+    assert lines[0].endswith("use the cooperative method (options.method: tv-box-coop, or --method tv-box-coop)")
 
 
-@pytest.mark.parametrize("name", ["paper", "chain", "rooms", "fourtank_own"])
-def test_validate_is_quiet_elsewhere(monkeypatch, capsys, name):
-    code, out, err = call(monkeypatch, capsys, "validate", str(SCENARIOS / f"{name}.yaml"))
+def test_validate_warns_on_the_benchmark_only_for_a_non_cooperative_method(monkeypatch, capsys):
+    """The file's method is tv-box-coop: no warning; with tv-box, the one line naming tv-box-coop."""
+    assert load_scenario(FOURTANK).options.method == "tv-box-coop"
+    code, out, err = call(monkeypatch, capsys, "validate", str(FOURTANK))
+    assert code == 0 and "valid" in out and err == ""
+    code, out, err = call(monkeypatch, capsys, "validate", str(FOURTANK), "--set", "options.method=tv-box")
+    assert code == 0 and "valid" in out
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("warning: ") and "tv-box-coop" in lines[0]
+
+
+@pytest.mark.parametrize("name, args", [("paper", ()), ("chain", ()), ("rooms", ()),
+                                        ("fourtank_own", ("--set", "options.method=tv-box"))])
+def test_validate_is_quiet_elsewhere(monkeypatch, capsys, name, args):
+    """fourtank_own with tv-box (its file's method, tv-box-coop, is never warned about)."""
+    code, out, err = call(monkeypatch, capsys, "validate", str(SCENARIOS / f"{name}.yaml"), *args)
     assert code == 0 and "valid" in out and err == ""
 
 
 def test_design_reports_and_writes_the_figures(monkeypatch, capsys):
-    code, out, err = call(monkeypatch, capsys, "design", str(FOURTANK), "--json")
+    code, out, err = call(monkeypatch, capsys, "design", str(FOURTANK), "--json", "--set", "options.method=tv-box")
     assert code == 0
     data = json.loads(out)["input_coupling"]
     assert data["likely_to_fail"] is True and data["horizon"] == 20 and data["loop_radius"] > 1.0
     assert err.startswith("warning: ") and "tv-box-coop" in err and len(err.strip().splitlines()) == 1
+    code, out, err = call(monkeypatch, capsys, "design", str(FOURTANK), "--json")  # the file's tv-box-coop
+    assert code == 0 and json.loads(out)["input_coupling"] == data and err == ""
     code, out, err = call(monkeypatch, capsys, "design", str(FOURTANK), "--set", "options.method=centralized")
     assert code == 0 and "input coupling" in out and err == ""  # centralized is not at risk
 

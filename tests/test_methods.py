@@ -433,5 +433,7 @@ def test_method_names_defaults_and_the_scenario_agree():
     assert get_args(fields["mode"].annotation) == MODES and get_args(fields["coupling"].annotation) == COUPLINGS
     options = ProtocolOptions(steps=5, rounds=3, tolerance=1e-6, initial_rounds=7, initial_tolerance=1e-8)
     assert options.to_json() == {"steps": 5, "iterations": 3, "tolerance": 1e-6, "initial_iterations": 7,
-                                 "initial_tolerance": 1e-8, "cooperative_step": "line"}
+                                 "initial_tolerance": 1e-8}
     assert ProtocolOptions.from_json(options.to_json()) == options
+    equal = ProtocolOptions(steps=5, cooperative_step="equal")
+    assert equal.to_json()["cooperative_step"] == "equal" and ProtocolOptions.from_json(equal.to_json()) == equal

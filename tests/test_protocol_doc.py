@@ -191,7 +191,8 @@ def examples() -> dict[str, object]:
     return {
         "release": Release(run="r", k=1, round=2, x=np.zeros(4), centres=np.zeros(4), sizes=np.ones(2),
                            assumed=np.array([[-1, -1], [0, 1]], dtype=np.int64), skipped=("b",),
-                           provided={"a": (z, v)}, target=(np.zeros(4), np.zeros(2)), kept=("a",)),
+                           provided={"a": (z, v)}, target=(np.zeros(4), np.zeros(2)), kept=("a",),
+                           iterate=(np.zeros((3, 4)), np.zeros((2, 2)))),
         "plan": PlanMessage(run="r", k=1, round=2, sender="a", status="solved", z=z, v=v, cost=1.0,
                             solve_time=0.01, qp_iterations=25, sent_at=12.5, reason="cost"),
         "kept": Kept(run="r", k=3, round=0, sender="a", sent_at=12.5),

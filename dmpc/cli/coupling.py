@@ -38,4 +38,4 @@ def coupling_warning(ic: InputCoupling | None, method: str, names: list[str]) ->
     else:
         fails = (f"{method}'s closed loop is unstable even without constraints (spectral radius "
                  f"{ic.loop_radius:.4f} per step at N = {ic.horizon})")
-    return f"{drive}; {fails}: use --method {COOPERATIVE_METHOD}"
+    return f"{drive}; {fails}: use the cooperative method (options.method: {COOPERATIVE_METHOD}, or --method {COOPERATIVE_METHOD})"

@@ -101,4 +101,5 @@ class CooperativeQP:
             z (N+1, n_R), v (N, m_i); its cost is R's part of the global cost with this agent's inputs.
         """
         self._qp.set_offset(x_s, u_s)
-        return self._qp.solve(z[0], self.coupling(z, v), alpha - beta, alpha + beta)
+        # from the iterate, a feasible point and often near the optimum (after the first rounds)
+        return self._qp.solve(z[0], self.coupling(z, v), alpha - beta, alpha + beta, start=(z, v))

@@ -139,7 +139,13 @@ class GlobalModel:
 
     # ------------------------------------------------------------------ cost
     def stage_costs(self, iterate: Iterate) -> np.ndarray:
-        """Each subsystem's part of the cost, shape (M,): sum_t z_i'Q_i z_i + v_i'R_i v_i + z_i(N)'P_i z_i(N)."""
+        """Each subsystem's part of the cost, shape (M,): sum_t z_i'Q_i z_i + v_i'R_i v_i + z_i(N)'P_i z_i(N).
+
+        Parameters
+        ----------
+        iterate : Iterate
+            z (N+1, n) and v (N, m) of the whole system, deviation coordinates.
+        """
         z, v = iterate.z, iterate.v
         per_state = ((self.Q @ z[:-1].T).T * z[:-1]).sum(axis=0) + (self.P @ z[-1]) * z[-1]
         per_input = ((self.R @ v.T).T * v).sum(axis=0)
@@ -177,7 +183,19 @@ class GlobalModel:
         return np.concatenate(values), np.concatenate(lower), np.concatenate(upper)
 
     def excess(self, iterate: Iterate, x_s: np.ndarray, u_s: np.ndarray, alpha: np.ndarray, beta: float) -> float:
-        """The largest excess of the iterate over its rows (:meth:`rows`), relative to max(1, |bound|); 0 if feasible."""
+        """The largest excess of the iterate over its rows (:meth:`rows`), relative to max(1, |bound|); 0 if feasible.
+
+        Parameters
+        ----------
+        iterate : Iterate
+            z (N+1, n) and v (N, m), deviation coordinates.
+        x_s, u_s : ndarray, shapes (n,), (m,)
+            The target the deviation coordinates are taken around (the state and input rows move by it).
+        alpha : ndarray, shape (n,)
+            The terminal box centre, deviation coordinates.
+        beta : float
+            The terminal box radius.
+        """
         values, lower, upper = self.rows(iterate, x_s, u_s, alpha, beta)
         return _largest_excess(values, lower, upper)
 

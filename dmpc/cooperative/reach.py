@@ -15,6 +15,11 @@ from dmpc.core.system import CoupledSystem
 def structure(system: CoupledSystem) -> tuple[np.ndarray, np.ndarray]:
     """The subsystem-level structure of the coupled dynamics.
 
+    Parameters
+    ----------
+    system : CoupledSystem
+        Its subsystems' A_jj, B_jj and its couplings' A_jl, B_jl.
+
     Returns
     -------
     state, input : ndarray of bool, shape (M, M)
@@ -62,6 +67,12 @@ def input_reach(system: CoupledSystem, horizon: int) -> tuple[tuple[int, ...], .
 
 
 def input_driven(system: CoupledSystem) -> bool:
-    """True if some subsystem's inputs drive another subsystem's states directly (B_ij != 0, i != j)."""
+    """True if some subsystem's inputs drive another subsystem's states directly (B_ij != 0, i != j).
+
+    Parameters
+    ----------
+    system : CoupledSystem
+        Its couplings' B_ij are looked at (:func:`structure`).
+    """
     _, inputs = structure(system)
     return bool((inputs & ~np.eye(system.M, dtype=bool)).any())

@@ -122,7 +122,21 @@ class CooperativeRounds:
     def combine(self, iterate: Iterate, proposals: dict[int, np.ndarray], target: Target, alpha: np.ndarray,
                 beta: float) -> Combination:
         """The round's next iterate (plant coordinates) from the agents' proposed inputs
-        (i -> (N, m_i), plant coordinates); see :func:`dmpc.cooperative.iterate.combine`."""
+        (i -> (N, m_i), plant coordinates); see :func:`dmpc.cooperative.iterate.combine`.
+
+        Parameters
+        ----------
+        iterate : Iterate
+            The round's iterate, plant coordinates.
+        proposals : dict i -> ndarray (N, m_i)
+            Agent i's proposed inputs, plant coordinates; an agent without one keeps its inputs.
+        target : Target
+            The step's target (x_s, u_s): the cost and the rows are taken around it.
+        alpha : ndarray, shape (n,)
+            The terminal box centre (deviation coordinates).
+        beta : float
+            The terminal box radius.
+        """
         x_s, u_s = target.x, target.u
         around = Iterate(iterate.z - x_s, iterate.v - u_s)
         moved = {i: v - u_s[self.system.us(i)] for i, v in proposals.items()}
@@ -146,6 +160,23 @@ class CooperativeRounds:
         return parts
 
     def excess(self, iterate: Iterate, target: Target, alpha: np.ndarray, beta: float) -> float:
-        """How far the iterate (plant coordinates) leaves the centralised problem's rows (0: feasible)."""
+        """How far the iterate (plant coordinates) leaves the centralised problem's rows (0: feasible).
+
+        Parameters
+        ----------
+        iterate : Iterate
+            Plant coordinates.
+        target : Target
+            The step's target (x_s, u_s) the rows are taken around.
+        alpha : ndarray, shape (n,)
+            The terminal box centre (deviation coordinates).
+        beta : float
+            The terminal box radius.
+
+        Returns
+        -------
+        float
+            :meth:`dmpc.cooperative.iterate.GlobalModel.excess`, relative to max(1, |bound|).
+        """
         around = Iterate(iterate.z - target.x, iterate.v - target.u)
         return self.model.excess(around, target.x, target.u, alpha, beta)

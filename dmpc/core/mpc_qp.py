@@ -206,11 +206,13 @@ class MpcQP:
         self._scale_row_bounds()
 
     def solve(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
-              terminal_upper: np.ndarray) -> QPSolution:
+              terminal_upper: np.ndarray, start: tuple[np.ndarray, np.ndarray] | None = None) -> QPSolution:
         """Solve from x (n,) with the feed-forward ``coupling`` c (N, n) or None and the terminal rows'
         bounds ``terminal_lower``, ``terminal_upper`` (r_f,).
 
-        Infinite terminal bounds are allowed (clipped to OSQP_INFTY)."""
+        Infinite terminal bounds are allowed (clipped to OSQP_INFTY). ``start`` (z (N+1, n),
+        v (N, m)), when given, is the primal point the solver starts from (its duals stay those
+        of the last solve); otherwise it starts from the last solution."""
         n, nz = self.n, self._nz
         l, u = self._l, self._u
         np.negative(x, out=l[:n])
@@ -232,6 +234,8 @@ class MpcQP:
         if self._cold:
             self._solver.warm_start(x=np.zeros(self._nvars), y=np.zeros(l.size))
             self._cold = False
+        if start is not None:
+            self._solver.warm_start(x=np.concatenate((start[0].reshape(-1), start[1].reshape(-1))))
         t0 = time.perf_counter()
         info, solution = self._run(l, u)
         if info.status_polish == POLISH_FAILED and self._refine < POLISH_RETRY_REFINE_ITER:

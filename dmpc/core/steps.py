@@ -59,9 +59,11 @@ class ProtocolOptions:
 
     def to_json(self) -> dict[str, Any]:
         """As run.json holds it: the scenario's option names."""
-        return {"steps": self.steps, "iterations": self.rounds, "tolerance": self.tolerance,
-                "initial_iterations": self.initial_rounds, "initial_tolerance": self.initial_tolerance,
-                "cooperative_step": self.cooperative_step}
+        data: dict[str, Any] = {"steps": self.steps, "iterations": self.rounds, "tolerance": self.tolerance,
+                                "initial_iterations": self.initial_rounds, "initial_tolerance": self.initial_tolerance}
+        if self.cooperative_step != "line":  # the default is left out: run.json as without the option
+            data["cooperative_step"] = self.cooperative_step
+        return data
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> "ProtocolOptions":
