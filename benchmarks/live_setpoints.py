@@ -5,9 +5,10 @@ processes in real time (dt = 0.2 s) and, while the run goes on, sends five setpo
 (``dmpc.setpoint``), each for a new target, with ``--hogs`` CPU-busy processes beside the run (two
 by default: ``python -c 'while True: pass'``, stopped at the end). Prints, per run, the median and
 largest recorded step time (release of step k to x(k+1)), the steps over dt, the fallbacks, and the
-step time of the steps that took a request (the step whose close decided the first target of the
-request, the answer's ``k`` - 1) against three times the median; with the machine's speed figure
-(ms for 10^6 Python additions, ``dmpc.bench.common.calibration_ms``).
+step time of the steps that took a request (every step from the one the request arrived in to the
+one whose close decided its first target, the answer's ``k`` - 1) against three times the median,
+and how long each request waited for its answer; with the machine's speed figure (ms for 10^6
+Python additions, ``dmpc.bench.common.calibration_ms``).
 
     python benchmarks/live_setpoints.py [--runs 1] [--hogs 2] [--steps 150] [--json]
 
@@ -72,9 +73,9 @@ def supervise(answers: list, errors: list):
                 if not live.wait_for_step(FIRST + n * EVERY, timeout=120):
                     errors.append(f"step {FIRST + n * EVERY} never recorded")
                     return
-                t0 = time.monotonic()
+                t0, open_step = time.monotonic(), live.steps()  # steps 0 .. open_step - 1 are recorded
                 answer = live.setpoint(cart, x=[position, None], sender="bench")
-                answers.append({"cart": cart, "x": position, "k": answer.k,
+                answers.append({"cart": cart, "x": position, "k": answer.k, "sent_in": open_step,
                                 "answer_ms": (time.monotonic() - t0) * 1e3})
         except Exception as exc:  # noqa: BLE001 - reported with the figures
             errors.append(f"{type(exc).__name__}: {exc}")
@@ -99,8 +100,10 @@ def one_run(prepared, folder: Path, hogs: int) -> dict:
     lines = [json.loads(line) for line in (folder / "steps.jsonl").read_text().splitlines()]
     times = np.array([rec["step_time"] for rec in lines[1:]])  # step 0 runs its rounds to convergence
     median = float(np.median(times))
-    taking = sorted({a["k"] - 1 for a in answers})
-    taken = {k: lines[k]["step_time"] for k in taking}
+    # the steps a request can touch: from the one it arrived in to the one whose close decided its
+    # first target (the answer's k - 1), which also notes it
+    taking = sorted({k for a in answers for k in range(a["sent_in"], a["k"])})
+    taken = {k: lines[k]["step_time"] for k in taking if k < len(lines)}
     summary = json.loads((folder / "summary.json").read_text())
     return {"exit_code": outcome.code, "errors": errors, "steps": len(lines), "answers": answers,
             "median_ms": median * 1e3, "max_ms": float(times.max()) * 1e3,
@@ -128,10 +131,12 @@ def main() -> None:
         result = one_run(prepared, base / f"run{n}", args.hogs)
         results.append(result)
         taking = ", ".join(f"{k}: {ms:.1f}" for k, ms in result["taking_ms"].items())
+        waits = ", ".join(f"{a['answer_ms']:.0f}" for a in result["answers"])
         print(f"run {n}: {result['steps']} steps, exit {result['exit_code']}, verdict {result['verdict']}, "
               f"{len(result['answers'])} requests answered; step time median {result['median_ms']:.1f} ms, "
               f"max {result['max_ms']:.1f} ms; steps over dt {result['over_dt']}; fallbacks {result['fallbacks']}; "
-              f"steps taking a request (k: ms) {taking or 'none'} = {result['taking_ratio']:.2f} x the median"
+              f"steps taking a request (k: ms) {taking or 'none'}: at most {result['taking_ratio']:.2f} x the median; "
+              f"answers after (ms) {waits or 'none'}"
               + (f"; errors {result['errors']}" if result["errors"] else ""), flush=True)
     ok = all(r["exit_code"] == 0 and not r["errors"] and r["over_dt"] == 0 and r["fallbacks"] == 0
              and len(r["answers"]) == len(REQUESTS) and r["taking_ratio"] <= 3.0 for r in results)

@@ -182,9 +182,20 @@ def decode(payload: bytes) -> Message:
     expected = _FIELD_SETS[cls]
     present = set(body) - {VERSION_FIELD, "type"}
     if not expected - _OPTIONAL.get(cls, frozenset()) <= present <= expected:
-        missing, extra = sorted(expected - present), sorted(map(str, present - expected))
-        raise DecodeError(f"{cls.__name__}: missing fields {missing}, unexpected fields {extra}")
+        raise DecodeError(_field_set_error(cls.__name__, sorted((expected - _OPTIONAL.get(cls, frozenset())) - present),
+                                           sorted(map(str, present - expected))))
     return _PARSERS[cls](body)
+
+
+def _field_set_error(kind: str, missing: list[str], extra: list[str]) -> str:
+    """``Setpoint: missing field 'u'; unexpected field 'colour'``: the fields a message of class
+    ``kind`` lacks (``missing``) and those it should not have (``extra``, names from the sender,
+    shown with escapes and at most 32 characters each)."""
+    parts = []
+    for what, names in (("missing", missing), ("unexpected", extra)):
+        if names:
+            parts.append(f"{what} field{'s' if len(names) > 1 else ''} " + ", ".join(repr(n[:32]) for n in names))
+    return f"{kind}: " + "; ".join(parts)
 
 
 def _int(body: dict, name: str, minimum: int = 0) -> int:

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from dmpc.bus.interface import AliveHandler, Broadcast, Bus, Handler, Timer
+from dmpc.bus.interface import AliveHandler, Broadcast, Bus, Handler, QueryHandler, Timer
 
 # Fault links name the process that hosts the coordinator (and the simulated plant) "plant",
 # as its log and process name do; agents are named by their subsystems.
@@ -136,6 +136,9 @@ class FaultyBus(Bus):
     def expect(self, key: str | None) -> None:
         self.inner.expect(key)
 
+    def serve(self, key: str, handler: QueryHandler) -> None:
+        self.inner.serve(key, handler)  # the askers are outside the run (operators): no faults injected for them
+
     def broadcast(self, key: str, encoding: str) -> Broadcast | None:
         return self.inner.broadcast(key, encoding)  # observers are outside the run: no faults injected for them
 
@@ -150,6 +153,11 @@ class FaultyBus(Bus):
 
     def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
         return self.inner.call_later(delay, fn)
+
+    @property
+    def call_later_threadsafe(self) -> bool:
+        """Whether the inner bus's :meth:`call_later` may be called from any thread."""
+        return self.inner.call_later_threadsafe
 
     def run(self, until: Callable[[], bool], timeout: float | None = None) -> bool:
         return self.inner.run(until, timeout)

@@ -10,6 +10,9 @@ from collections.abc import Callable
 
 Handler = Callable[[str, bytes], None]
 AliveHandler = Callable[[str, bool], None]
+Reply = Callable[[bytes | None], None]
+"""Ends one query: with a reply carrying the bytes given, or (None) without one."""
+QueryHandler = Callable[[str, bytes, Reply], None]
 
 
 class Timer(ABC):
@@ -54,6 +57,12 @@ class Bus(ABC):
         that arrived just before it.
         """
 
+    def serve(self, key: str, handler: QueryHandler) -> None:  # noqa: B027 - optional: most nodes answer no queries
+        """Answer the queries on ``key`` (``prefix/*`` matches one chunk): ``handler(key, payload,
+        reply)`` on the dispatch thread for each, whose ``reply`` must be called once, then or
+        later, on that thread: ``reply(data)`` sends the one reply and ends the query, ``reply(None)``
+        ends it without one. A transport without queries never calls the handler."""
+
     def expect(self, key: str | None) -> None:  # noqa: B027 - a hint with a default: most transports ignore it
         """A hint: the node's next needed message comes on hot key ``key`` (None: any). Transports
         that wait on one hot key at a time wait on it; others ignore the hint."""
@@ -79,6 +88,13 @@ class Bus(ABC):
     @abstractmethod
     def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
         """Run ``fn`` on the dispatch thread after ``delay`` seconds of bus time."""
+
+    @property
+    def call_later_threadsafe(self) -> bool:
+        """True if :meth:`call_later` may be called from any thread: a worker thread can hand its
+        result to the dispatch thread. False for a bus whose time is simulated (the in-memory bus),
+        where nothing may happen outside its events."""
+        return False
 
     @abstractmethod
     def run(self, until: Callable[[], bool], timeout: float | None = None) -> bool:

@@ -11,7 +11,7 @@ import itertools
 from collections.abc import Callable
 from functools import partial
 
-from dmpc.bus.interface import AliveHandler, Bus, Handler, Timer, key_matches
+from dmpc.bus.interface import AliveHandler, Bus, Handler, QueryHandler, Timer, key_matches
 
 
 class _MemoryTimer(Timer):
@@ -36,6 +36,7 @@ class MemoryBus(Bus):
         self._seq = itertools.count()
         self._events: list = []
         self._subs: list[tuple[str, Handler]] = []
+        self._servers: list[tuple[str, QueryHandler]] = []
         self._alive: set[str] = set()
         self._watchers: list[tuple[str, AliveHandler]] = []
         self._max_events = max_events
@@ -52,6 +53,20 @@ class MemoryBus(Bus):
 
     def subscribe(self, key: str, handler: Handler, hot: bool = False) -> None:
         self._subs.append((key, handler))
+
+    def serve(self, key: str, handler: QueryHandler) -> None:
+        self._servers.append((key, handler))
+
+    def ask(self, key: str, payload: bytes, on_reply: Callable[[bytes | None], None]) -> None:
+        """Query ``key`` with ``payload``: each server of the key gets it as an event, and its reply
+        (bytes, or None: ended without one) reaches ``on_reply`` as another."""
+        data = bytes(payload)
+        for pattern, handler in list(self._servers):
+            if key_matches(pattern, key):
+                def reply(answer: bytes | None) -> None:
+                    self._schedule(self._time, partial(on_reply, None if answer is None else bytes(answer)))
+
+                self._schedule(self._time, partial(handler, key, data, reply))
 
     def declare_alive(self, key: str) -> None:
         self._alive.add(key)
@@ -104,3 +119,4 @@ class MemoryBus(Bus):
         self._closed = True
         self._events.clear()
         self._subs.clear()
+        self._servers.clear()

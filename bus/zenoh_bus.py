@@ -53,7 +53,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from dmpc.bus.interface import AliveHandler, Broadcast, Bus, Handler, Timer, key_matches
+from dmpc.bus.interface import AliveHandler, Broadcast, Bus, Handler, QueryHandler, Reply, Timer, key_matches
 from dmpc.bus.session import BusError, open_session, opens_abandoned, session_config
 
 log = logging.getLogger(__name__)
@@ -405,6 +405,63 @@ class ZenohBus(Bus):
             if "*" in key:
                 self._wildcards.append((key, handlers))
 
+    def serve(self, key: str, handler: QueryHandler) -> None:
+        """Answer the queries on ``key``: ``handler(key, payload, reply)`` on the ``run`` thread for
+        each (:meth:`Bus.serve <dmpc.bus.interface.Bus.serve>`). A query whose ``reply`` is never
+        called ends when it is forgotten; one dropped on arrival (too large, queue full) ends at once
+        without a reply."""
+        expr = _key_expr(key)
+
+        def dispatch(key: str, value: tuple[bytes, zenoh.Query]) -> None:
+            data, query = value
+            handler(key, data, _replier(query))
+
+        def callback(query: zenoh.Query) -> None:
+            try:
+                payload = query.payload
+                if payload is not None and len(payload) > self._max_payload:
+                    self.dropped += 1
+                    query.drop()
+                    return
+                self._enqueue(dispatch, str(query.key_expr), (b"" if payload is None else payload.to_bytes(), query))
+            except BaseException:  # noqa: BLE001 - must not escape into Zenoh's thread
+                self.callback_errors += 1
+                self.dropped += 1
+
+        self._declare(lambda: self._session.declare_queryable(
+            expr, zenoh.handlers.Callback(callback, indirect=False)))  # it only enqueues: see _direct
+
+    def query(self, key: str, payload: bytes, timeout: float) -> list[bytes] | None:
+        """Ask the queryables of ``key`` with ``payload`` and wait until the query ends, at most
+        ``timeout`` seconds in all (waiting for a queryable to match included).
+
+        Returns
+        -------
+        list of bytes or None
+            The payloads of the replies once the query ended: none when every queryable that got
+            it ended it without a reply, or when it was dropped on its way (an access control
+            denies it without a word). None when no queryable matched ``key`` within ``timeout``.
+        """
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            self._check_open()
+            querier = self._session.declare_querier(_key_expr(key))
+        try:
+            while not querier.matching_status.matching:  # type: ignore[attr-defined]  # see _matching
+                if time.monotonic() >= deadline:
+                    return None
+                time.sleep(0.002)
+            replies = self._session.get(_key_expr(key), payload=bytes(payload), encoding=ENCODING,
+                                        timeout=max(deadline - time.monotonic(), 0.001))
+            return [reply.ok.payload.to_bytes() for reply in replies if reply.ok is not None]
+        except zenoh.ZError as exc:
+            raise BusError(f"query on {key!r} failed: {exc}") from exc
+        finally:
+            try:
+                querier.undeclare()
+            except Exception:  # noqa: BLE001 - best effort: the session may be closing
+                pass
+
     def _declare_hot(self, key: str, expr: zenoh.KeyExpr) -> _Hot:
         with self._lock:
             self._check_open()
@@ -479,6 +536,11 @@ class ZenohBus(Bus):
     def now(self) -> float:
         """``time.monotonic()``: on Linux one clock for every process of a host."""
         return time.monotonic()
+
+    @property
+    def call_later_threadsafe(self) -> bool:
+        """True: :meth:`call_later` may be called from any thread."""
+        return True
 
     def call_later(self, delay: float, fn: Callable[[], None]) -> Timer:
         """Run ``fn`` on the ``run`` thread ``delay`` seconds from now (thread-safe)."""
@@ -629,6 +691,21 @@ def _direct(fn: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback:
     # the interpreter joins at exit before atexit hooks run: a bus left open then hangs the
     # process. Our callbacks only enqueue, so they can run on Zenoh's own thread.
     return zenoh.handlers.Callback(fn, indirect=False)
+
+
+def _replier(query: zenoh.Query) -> Reply:
+    """The ``reply`` of one query: one reply on the query's key (or none), then the query's end."""
+
+    def reply(payload: bytes | None) -> None:
+        try:
+            if payload is not None:
+                query.reply(query.key_expr, payload, encoding=ENCODING)
+        except zenoh.ZError as exc:
+            log.debug("a reply could not be sent (the asker left, or the session is closing): %s", exc)
+        finally:
+            query.drop()
+
+    return reply
 
 
 def _matching(publisher: zenoh.Publisher) -> bool:

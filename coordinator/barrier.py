@@ -7,7 +7,8 @@ refused plans), alpha(k+1) = (A+BK) eta, beta(k+1) = sigma(alpha(k+1)) (or anoth
 terminal update, dmpc.methods.policy), the plant update and the step record.
 
 Inputs are method calls (``start``, ``on_plan``, ``on_kept``, ``on_deadline``, ``on_agent_lost``,
-``on_agent_back``, ``on_setpoint``, ``on_state``, ``step_opened``); outputs are lists of actions
+``on_agent_back``, ``on_setpoint``, ``on_state``, ``step_opened``; ``setpoint_needs`` and ``learn_targets``
+let the host compute a request's targets beside the run first); outputs are lists of actions
 (:mod:`dmpc.coordinator.actions`, importable from here too) for the hosting process to carry out.
 The coordinator is the one place that accepts or rejects a plan: ``on_plan`` says why it dropped
 one, and answers a plan whose inputs leave U_i with :class:`PlanRefused`. The host's clock, if
@@ -31,7 +32,7 @@ given, only times the records (plan latency, step time).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from functools import partial
 
@@ -65,6 +66,7 @@ from dmpc.methods import DEFAULT_METHOD, terminal_policy
 from dmpc.methods.policy import TerminalPolicy
 from dmpc.offline import ControllerDesign
 from dmpc.plant.dynamics import Plant
+from dmpc.tracking.targets import Request, Target
 from dmpc.tracking.tracker import Tracker
 
 __all__ = ["INPUT_REFUSED", "INPUT_TOLERANCE", "Action", "ApplyInputs", "Coordinator", "PlanRefused", "RoundOpened",
@@ -309,13 +311,34 @@ class Coordinator:
         or refuse it and say why (:meth:`SetpointIntake.answer
         <dmpc.coordinator.setpoint_intake.SetpointIntake.answer>`). Accepted, the record of the
         step it arrived in notes it (the decided step while its state is awaited)."""
-        answer, note = self._setpoints.answer(msg, self.k + (2 if self._pending is not None else 1), self.finished)
+        answer, note = self._setpoints.answer(msg, self._first_undecided(), self.finished)
         if note and self._pending is not None:
             old = self._pending.note
             self._pending = replace(self._pending, note=f"{old}; {note}" if old else note)
         elif note:
             self._step.add_note(note)
         return answer
+
+    def _first_undecided(self) -> int:
+        """The first step whose target is not decided yet: k + 1, or k + 2 while step k's state is
+        awaited from a plant outside."""
+        return self.k + (2 if self._pending is not None else 1)
+
+    def setpoint_needs(self, msgs: Sequence[Setpoint]) -> tuple[list[SetpointAnswer | None], list[Request]]:
+        """What :meth:`on_setpoint` would need to take the requests ``msgs`` now, in their order: the
+        refusal of each that is refused, and the requests whose targets are to be computed first,
+        beside the run (:meth:`SetpointIntake.needs <dmpc.coordinator.setpoint_intake.SetpointIntake.needs>`).
+        No requests: they can be taken now, and no step will wait for a target."""
+        return self._setpoints.needs(msgs, self._first_undecided(), self.finished)
+
+    def setpoint_refusal(self, msg: Setpoint) -> SetpointAnswer | None:
+        """The answer that refuses the request ``msg`` now, or None if :meth:`on_setpoint` would take it."""
+        return self._setpoints.refusal(msg, self._first_undecided(), self.finished)
+
+    def learn_targets(self, known: Iterable[tuple[Request, Target]]) -> None:
+        """Keep the targets ``known`` (request, its target) computed beside the run, for
+        :meth:`on_setpoint` and the steps after it."""
+        self._setpoints.learn(known)
 
     # ------------------------------------------------------------------ rounds
     def _now(self) -> float:

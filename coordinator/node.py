@@ -11,13 +11,15 @@ which accepts it or says why not. Invalid messages are dropped and counted per s
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 from typing import Protocol
 
 from dmpc.bus import keys
 from dmpc.bus.codec import MAX_REASON, DecodeError, VersionMismatch, decode, encode
-from dmpc.bus.interface import Bus
+from dmpc.bus.interface import Bus, Reply
 from dmpc.bus.messages import (
     PROTOCOL_VERSION,
     Kept,
@@ -37,12 +39,15 @@ from dmpc.coordinator.barrier import (
     SendRelease,
     StepCompleted,
 )
+from dmpc.coordinator.target_worker import Known, TargetWorker
 from dmpc.core.steps import StepRecord
 from dmpc.plant.link import PlantLink
 from dmpc.security.rejects import STALE, Rejections
 
 log = logging.getLogger("dmpc.plant")
 NAMED_DESIGNS = 3  # differing designs spelled out in a start-up failure (the Stop reason is bounded)
+MAX_WAITING = 256
+"""Setpoint requests that may wait for their targets at once; one beyond is refused at once."""
 
 
 def _shown(text: str) -> str:
@@ -97,6 +102,15 @@ class MessageCount:
                 "bytes": sum(p["bytes"] for p in per.values()), "per_agent": per}
 
 
+@dataclass(frozen=True)
+class _Request:
+    """A setpoint request as it arrived: the message, and how its answer goes back (published on
+    ``setpoint-answer/<sender>``, or the reply of its query)."""
+
+    msg: Setpoint
+    respond: Reply
+
+
 class RunObserver(Protocol):
     """Who watches the run from outside it (the live view's telemetry): told of each completed
     step and of the end; it must never block the coordinator."""
@@ -146,12 +160,16 @@ class CoordinatorNode:
     plant_timeout : float or None
         With a plant outside (the coordinator built with ``plant=None``): seconds to wait for the
         state of each step (docs/protocol.md); x(0) is awaited with the agents' readiness.
+    targets : TargetWorker, optional
+        Computes the targets of setpoint requests beside the run: a request is taken at the first
+        step boundary after its targets are known, and answered then. Without one (the in-memory
+        bus), a request is taken as it arrives and its targets computed when a step needs them.
     """
 
     def __init__(self, bus: Bus, coordinator: Coordinator, design_digest: str,
                  on_step: Callable[[StepRecord], None], mode: str = "lockstep", dt: float = 0.1,
                  deadline: float | None = None, scenario: str = "", telemetry: RunObserver | None = None,
-                 plant_timeout: float | None = None) -> None:
+                 plant_timeout: float | None = None, targets: TargetWorker | None = None) -> None:
         self.bus = bus
         self.coordinator = coordinator
         self.run_id = coordinator.run_id
@@ -185,10 +203,14 @@ class CoordinatorNode:
         self._opened_step = -1  # the last step whose time was started
         self._stop_payload: bytes | None = None
         self.messages = MessageCount()
+        self.targets = targets
+        self._waiting: deque[_Request] = deque()  # setpoint requests not yet taken, in the order they arrived
+        self._batch: list[_Request] = []  # those whose targets the worker computes now (they left _waiting)
         bus.subscribe(keys.plan(self.run_id, "*"), self._on_plan, hot=True)
         bus.subscribe(keys.kept(self.run_id, "*"), self._on_kept)  # not hot: run() waits on the plans, a queued notice wakes it
         bus.subscribe(keys.ready(self.run_id, "*"), self._on_ready)
         bus.subscribe(keys.setpoint_prefix(self.run_id), self._on_setpoint)
+        bus.serve(keys.setpoint_prefix(self.run_id), self._on_setpoint_query)
         bus.watch_alive(keys.alive_prefix(self.run_id), self._on_alive)
 
     def counts(self) -> dict:
@@ -295,23 +317,104 @@ class CoordinatorNode:
         self._carry_out(actions)
 
     def _on_setpoint(self, key: str, payload: bytes) -> None:
-        """A supervisory program's setpoint request: answered on ``setpoint-answer/<sender>``,
-        unless it does not decode or its sender is not its key's (then counted as dropped)."""
+        """A setpoint request published on ``setpoint/<sender>``: answered on
+        ``setpoint-answer/<sender>``."""
+        self._setpoint_arrived(key, payload, partial(self._publish_answer, keys.setpoint_answer(self.run_id,
+                                                                                                keys.last_chunk(key))))
+
+    def _on_setpoint_query(self, key: str, payload: bytes, reply: Reply) -> None:
+        """A setpoint request sent as a query on ``setpoint/<sender>``: answered by the query's one
+        reply (a request dropped ends the query without a reply)."""
+        self._setpoint_arrived(key, payload, reply)
+
+    def _publish_answer(self, key: str, payload: bytes | None) -> None:
+        if payload is not None:
+            self.bus.publish(key, payload)
+
+    def _setpoint_arrived(self, key: str, payload: bytes, respond: Reply) -> None:
+        """A supervisory program's setpoint request on ``key``: answered through ``respond``, unless it
+        does not decode or its sender is not its key's (then counted as dropped, and ``respond``
+        told so with None).
+
+        With a target worker, the request waits (behind those that arrived before it) until the
+        targets it needs are known, and is taken and answered at the step boundary that follows.
+        """
         sender = keys.last_chunk(key)
         msg = self._decoded(sender, payload)
-        if msg is None:
+        problem = None
+        if msg is not None and (not isinstance(msg, Setpoint) or msg.sender != sender):
+            problem = "not a setpoint request from its key's sender"
+        elif msg is not None:
+            try:
+                keys.check_chunk(sender, "sender")
+            except ValueError as exc:
+                problem = str(exc)
+        if problem is not None:
+            self._reject(sender, problem)
+        if msg is None or problem is not None:
+            respond(None)
             return
-        if not isinstance(msg, Setpoint) or msg.sender != sender:
-            self._reject(sender, "not a setpoint request from its key's sender")
+        assert isinstance(msg, Setpoint)
+        request = _Request(msg, respond)
+        if self.targets is None:
+            self._answer_setpoint(request, self.coordinator.on_setpoint(msg))
             return
-        try:
-            keys.check_chunk(sender, "sender")
-        except ValueError as exc:
-            self._reject(sender, str(exc))
+        refusal = self.coordinator.setpoint_refusal(msg)  # refused now, it would be refused later too
+        if refusal is None and self.finished:  # stopped early (a failure): its worker is gone
+            refusal = self._refusal(msg, "the run is finished")
+        if refusal is None and len(self._waiting) + len(self._batch) >= MAX_WAITING:
+            refusal = self._refusal(msg, f"too many requests ({MAX_WAITING}) wait for their targets: ask again later")
+        if refusal is not None:
+            self._answer_setpoint(request, refusal)
             return
-        answer = self.coordinator.on_setpoint(msg)
-        self._log_setpoint(msg, answer)
-        self.bus.publish(keys.setpoint_answer(self.run_id, sender), encode(answer))
+        self._waiting.append(request)
+        if not self._batch:
+            self._take_setpoints()
+
+    def _take_setpoints(self) -> None:
+        """Take every waiting request whose targets are known, in the order they arrived; send the
+        others, with the targets they need, to the worker (one batch at a time)."""
+        while self._waiting and not self._batch:
+            requests = list(self._waiting)
+            self._waiting.clear()
+            self._try_to_take(requests)
+
+    def _try_to_take(self, requests: list[_Request]) -> None:
+        """Answer the refused ones of ``requests``; take the others now if every target they need is
+        known, else make them the worker's batch."""
+        refusals, unknown = self.coordinator.setpoint_needs([request.msg for request in requests])
+        for request, refusal in zip(requests, refusals):
+            if refusal is not None:
+                self._answer_setpoint(request, refusal)
+        taken = [request for request, refusal in zip(requests, refusals) if refusal is None]
+        if not unknown:
+            for request in taken:
+                self._answer_setpoint(request, self.coordinator.on_setpoint(request.msg))
+            return
+        assert self.targets is not None
+        self._batch = taken
+        self.targets.submit(unknown, self._targets_known)
+
+    def _targets_known(self, known: Known, error: str) -> None:
+        """The worker computed the batch's targets (``known``), or could not (``error``): this is a
+        step boundary, where the batch is taken (or its refusal sent), then the requests behind it."""
+        batch, self._batch = self._batch, []
+        if not batch:
+            return  # the run stopped meanwhile: its requests were refused
+        if error:
+            for request in batch:
+                self._answer_setpoint(request, self._refusal(request.msg, f"its target could not be computed: {error}"))
+        else:
+            self.coordinator.learn_targets(known)
+            self._try_to_take(batch)  # a change of the schedule passed meanwhile may need more
+        self._take_setpoints()
+
+    def _refusal(self, msg: Setpoint, reason: str) -> SetpointAnswer:
+        return SetpointAnswer(self.run_id, msg.id, msg.subsystem, False, -1, reason[:MAX_REASON])
+
+    def _answer_setpoint(self, request: _Request, answer: SetpointAnswer) -> None:
+        self._log_setpoint(request.msg, answer)
+        request.respond(encode(answer))
 
     def _log_setpoint(self, msg: Setpoint, answer: SetpointAnswer) -> None:
         who = f"setpoint request {msg.id} from {_shown(msg.sender)} for subsystem {_shown(msg.subsystem)}"
@@ -433,6 +536,12 @@ class CoordinatorNode:
         self.finished = True
         if self.link is not None:
             self.link.stop()
+        waiting = self._batch + list(self._waiting)
+        self._batch, self._waiting = [], deque()
+        for request in waiting:  # never left without an answer
+            self._answer_setpoint(request, self._refusal(request.msg, "the run is finished"))
+        if self.targets is not None:
+            self.targets.close()
         msg = Stop(run=self.run_id, k=self.coordinator.k, reason=reason[:MAX_REASON])
         self._stop_payload = encode(msg)
         self.bus.publish(keys.control(self.run_id), self._stop_payload)

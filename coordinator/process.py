@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from dmpc.bus.interface import Bus
 from dmpc.coordinator.barrier import Coordinator
 from dmpc.coordinator.node import CoordinatorNode, RunObserver
+from dmpc.coordinator.target_worker import TargetWorker
 from dmpc.core.steps import StepRecord
 from dmpc.methods import method_spec, terminal_policy
 from dmpc.methods.policy import BoxPolicy
@@ -71,9 +72,12 @@ def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callabl
                               clock=bus.now, tracker=tracker, triggered=prepared.trigger.event,
                               cooperative=method_spec(prepared.method).cooperative,
                               cooperative_step=prepared.protocol.cooperative_step)
+    # a live request's targets are computed beside the run where a thread can hand them back (not on
+    # the in-memory bus, whose time is simulated: there a request is taken as it arrives)
+    targets = TargetWorker(tracker.space, bus) if tracker is not None and bus.call_later_threadsafe else None
     return CoordinatorNode(bus, coordinator, prepared.digest, on_step, mode=prepared.mode, dt=prepared.dt,
                            deadline=prepared.deadline, scenario=prepared.name, telemetry=telemetry,
-                           plant_timeout=plant_timeout)
+                           plant_timeout=plant_timeout, targets=targets)
 
 
 def run_coordinator(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id: str, startup_timeout: float,

@@ -5,6 +5,7 @@ docs/protocol.md, "Setpoints while a run goes on").
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -13,7 +14,7 @@ from dmpc.core.system import CoupledSystem, LinearSet
 from dmpc.methods import lacks
 from dmpc.security.rejects import MAX_MAGNITUDE
 from dmpc.tracking.schedule import SetpointEntry
-from dmpc.tracking.targets import Target
+from dmpc.tracking.targets import Request, Target
 from dmpc.tracking.tracker import Tracker, TrackingStep
 
 
@@ -63,20 +64,66 @@ class SetpointIntake:
             (``k`` = -1) with the reason. ``note``: what the record of the step it arrived in says
             of it ("" when refused).
         """
+        refusal = self.refusal(msg, first_undecided, finished)
+        if refusal is not None:
+            return refusal, ""
+        assert self.tracker is not None  # checked by problem()
+        entry = self._entry(msg, first_undecided)
+        self.tracker.add(entry)
+        note = (f"setpoint from {msg.sender} (id {msg.id}): subsystem {msg.subsystem} "
+                f"{_components_text('x', entry.x)}, {_components_text('u', entry.u)} from step {entry.at}")
+        return SetpointAnswer(self.run_id, msg.id, msg.subsystem, True, entry.at), note
+
+    def _entry(self, msg: Setpoint, at: int) -> SetpointEntry:
+        """The schedule's entry of the request ``msg`` (checked by :meth:`problem`) from step ``at``."""
+        i = self.index[msg.subsystem]
+        sub = self.system.subsystems[i]
+        return SetpointEntry(at=at, index=i, x=_request_part(msg.x, sub.n), u=_request_part(msg.u, sub.m),
+                             source=msg.sender)
+
+    def needs(self, msgs: Sequence[Setpoint], first_undecided: int,
+              finished: bool) -> tuple[list[SetpointAnswer | None], list[Request]]:
+        """What taking the requests ``msgs``, in their order, from step ``first_undecided`` would need:
+        the refusal of each that is refused, and the requests whose targets must be computed first
+        (none: they can be taken at once).
+
+        Parameters
+        ----------
+        msgs : sequence of Setpoint
+            The requests, as :meth:`answer` takes them.
+        first_undecided : int
+            The first step whose target is not decided yet, where they would hold from.
+        finished : bool
+            The run is over.
+
+        Returns
+        -------
+        (list of SetpointAnswer or None, list of Request)
+            Per request its refusal, or None if it would be taken; and the requests of the
+            schedule with those taken added, from ``first_undecided`` on, whose targets are not
+            known yet (:meth:`Tracker.unknown <dmpc.tracking.tracker.Tracker.unknown>`).
+        """
+        refusals = [self.refusal(msg, first_undecided, finished) for msg in msgs]
+        entries = [self._entry(msg, first_undecided) for msg, refusal in zip(msgs, refusals) if refusal is None]
+        if not entries:
+            return refusals, []
+        assert self.tracker is not None  # checked by problem()
+        return refusals, self.tracker.unknown(entries)
+
+    def refusal(self, msg: Setpoint, first_undecided: int, finished: bool) -> SetpointAnswer | None:
+        """The answer that refuses the request ``msg`` from step ``first_undecided`` (the run
+        ``finished`` or not), or None if it would be taken (:meth:`problem` says why not)."""
         try:
             problem = self.problem(msg, first_undecided, finished)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the run
             problem = f"malformed: {type(exc).__name__}"
-        if problem is not None:
-            return SetpointAnswer(self.run_id, msg.id, msg.subsystem, False, -1, problem), ""
-        assert self.tracker is not None  # checked by problem()
-        i, at = self.index[msg.subsystem], first_undecided
-        sub = self.system.subsystems[i]
-        x, u = _request_part(msg.x, sub.n), _request_part(msg.u, sub.m)
-        self.tracker.add(SetpointEntry(at=at, index=i, x=x, u=u, source=msg.sender))
-        note = (f"setpoint from {msg.sender} (id {msg.id}): subsystem {msg.subsystem} "
-                f"{_components_text('x', x)}, {_components_text('u', u)} from step {at}")
-        return SetpointAnswer(self.run_id, msg.id, msg.subsystem, True, at), note
+        return None if problem is None else SetpointAnswer(self.run_id, msg.id, msg.subsystem, False, -1, problem)
+
+    def learn(self, known: Iterable[tuple[Request, Target]]) -> None:
+        """Keep the targets ``known`` (request, its target), computed beside the run, for the steps
+        that will need them (nothing without a tracker)."""
+        if self.tracker is not None:
+            self.tracker.learn(known)
 
     def problem(self, msg: Setpoint, first_undecided: int, finished: bool) -> str | None:
         """Why the request cannot be taken from step ``first_undecided``, or None.

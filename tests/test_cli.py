@@ -172,7 +172,9 @@ def test_setpoint_without_a_coordinator_says_so_and_exits_1(monkeypatch, capsys,
         code, out, err = call(monkeypatch, capsys, "setpoint", "--connect", f"tcp/127.0.0.1:{port}", "--run-id",
                               "nobody", *request_args, "--timeout", "0.5")
     assert code == 1 and out == ""
-    assert err.strip() == "no answer from the coordinator of run nobody within 0.5 s"
+    assert err.strip() == (f"not authorised or no run listening: no answer from the coordinator of run nobody at "
+                           f"tcp/127.0.0.1:{port} within 0.5 s (under TLS only the operator certificate may send "
+                           "setpoints; check the endpoint and the run id, which dmpc run prints)")
 
 
 def test_setpoint_to_an_endpoint_where_nothing_listens_exits_1(monkeypatch, capsys):

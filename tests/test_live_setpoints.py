@@ -192,6 +192,22 @@ def test_bad_payloads_are_counted_and_never_answered(paper):
     assert not run.coordinator.coordinator.tracker.schedule
 
 
+def test_a_request_sent_as_a_query_is_answered_by_its_reply_and_a_dropped_one_ends_without(paper):
+    run = build_run(paper, lambda rec: None, run_id=RUN)
+    published = Operator(run.bus)  # hears what is published on setpoint-answer/ops: nothing, for queries
+    run_until(run, 4)
+    replies: list = []
+    run.bus.ask(keys.setpoint(RUN, "ops"), encode(request(id_=21)), replies.append)
+    run.bus.ask(keys.setpoint(RUN, "ops"), encode(request(sender="someone-else", id_=22)), replies.append)
+    run.bus.ask(keys.setpoint(RUN, "ops"), b"\x92\x01", replies.append)
+    run.bus.run(until=lambda: len(replies) == 3)
+    assert decode(replies[0]) == SetpointAnswer(run=RUN, id=21, subsystem="1", accepted=True, k=5, reason="")
+    assert replies[1:] == [None, None]  # dropped (and counted): the query ends without a reply
+    assert run.coordinator.rejected == {UNKNOWN: 2}
+    run.bus.run(until=lambda: run.coordinator.finished)
+    assert published.answers == []
+
+
 # ------------------------------------------------------------------------------ the request's side
 def test_components_by_position_and_by_name():
     scenario = dmpc.load_scenario({"name": "two", "subsystems": [
@@ -244,8 +260,11 @@ def test_the_python_function_says_when_nothing_answers_and_refuses_what_cannot_b
     with pytest.raises(dmpc.SetpointUnanswered, match="no answer from the coordinator of run nobody: cannot open"):
         dmpc.setpoint(f"tcp/127.0.0.1:{port}", "nobody", "1", x=[1.0, None], timeout=0.3)
     with zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{port}"])):
-        with pytest.raises(dmpc.SetpointUnanswered, match="^no answer from the coordinator of run nobody within 0.3 s$"):
+        with pytest.raises(dmpc.SetpointUnanswered, match=f"^not authorised or no run listening: no answer from the "
+                                                          f"coordinator of run nobody at tcp/127.0.0.1:{port} within 0.3 s "):
             dmpc.setpoint(f"tcp/127.0.0.1:{port}", "nobody", "1", x=[1.0, None], timeout=0.3)
+    with pytest.raises(ValueError, match="connect: tls/127.0.0.1:1 is a TLS endpoint: give the certificate directory"):
+        dmpc.setpoint("tls/127.0.0.1:1", "nobody", "1", x=[1.0, None])
     with pytest.raises(ValueError, match="x: states by name need the scenario"):
         dmpc.setpoint(f"tcp/127.0.0.1:{port}", "nobody", "1", x={"x1": 1.0})
     with pytest.raises(dmpc.DmpcError, match="no subsystem '7' in scenario 'paper'"):

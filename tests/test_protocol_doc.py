@@ -276,7 +276,8 @@ def test_the_limits_are_the_codecs(doc):
 
 
 # -------------------------------------------------------------------------------- access control
-ACTIONS = {"may publish": "put", "may declare a token": "liveliness_token", "may subscribe to": "declare_subscriber"}
+ACTIONS = {"may publish": "put", "may declare a token": "liveliness_token", "may subscribe to": "declare_subscriber",
+           "may query": "query", "may declare a queryable": "declare_queryable"}
 
 
 def documented_keys(cell: str) -> set[str]:

@@ -34,12 +34,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 CORE_PACKAGES = {"dmpc.core": ROOT / "dmpc" / "core", "dmpc.offline": ROOT / "dmpc" / "offline",
                  "dmpc.methods": ROOT / "dmpc" / "methods", "dmpc.tracking": ROOT / "dmpc" / "tracking",
-                 "dmpc.cooperative": ROOT / "dmpc" / "cooperative"}
+                 "dmpc.cooperative": ROOT / "dmpc" / "cooperative", "dmpc.estimation": ROOT / "dmpc" / "estimation"}
 """Every module of these packages is core: the model, its sets, projections, the discretisation, the
 QPs and their statuses, the trajectories, the protocol options and the record of one step
 (dmpc.core), the offline design and its record (dmpc.offline), the methods' terminal policies,
 the setpoint targets and the reference governor (dmpc.tracking), the cooperative iterate and the
-agents' cooperative QPs (dmpc.cooperative)."""
+agents' cooperative QPs (dmpc.cooperative), the disturbance models, the observer and the offset-free
+targets (dmpc.estimation)."""
 CORE_MODULES = {
     "dmpc.agents": ROOT / "agents" / "__init__.py",
     "dmpc.agents.local_qp": ROOT / "agents" / "local_qp.py",

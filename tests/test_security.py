@@ -250,6 +250,28 @@ def test_only_the_operator_may_request_setpoints_and_only_the_coordinator_takes_
     assert allowed(acl, "operator", "ingress", "declare_liveliness_subscriber", "dmpc/r/alive/*")
 
 
+def test_only_the_operator_may_ask_for_a_setpoint_by_query_and_only_the_coordinator_answers(cert_dir):
+    """A request sent as a query: only the operator's gets in (any other role's ends unanswered);
+    the coordinator's queryable is declared to every role, and its replies reach the operator."""
+    acl = read_acl(cert_dir)
+    for sender in ("cli", "scada"):
+        key = f"dmpc/r/setpoint/{sender}"
+        assert allowed(acl, "operator", "ingress", "query", key)
+        assert allowed(acl, "operator", "egress", "reply", key)
+        assert allowed(acl, "coordinator", "egress", "query", key)
+        assert allowed(acl, "coordinator", "ingress", "declare_queryable", key)
+        assert allowed(acl, "coordinator", "ingress", "reply", key)
+        for role in ("plant", "sensor-1", "agent-1", "agent-2", "observer", "coordinator", "intruder"):
+            assert not allowed(acl, role, "ingress", "query", key), role
+        for role in ("plant", "sensor-1", "agent-1", "observer", "operator"):
+            assert allowed(acl, role, "egress", "declare_queryable", key), role  # they see it: their query ends
+            assert not allowed(acl, role, "ingress", "declare_queryable", key), role
+        assert not allowed(acl, "intruder", "egress", "declare_queryable", key)
+    for key in ("dmpc/r/release", "dmpc/r/plan/1", "dmpc/r/state/plant", "dmpc/r/setpoint-answer/cli"):
+        assert not allowed(acl, "operator", "ingress", "query", key), key
+        assert not allowed(acl, "coordinator", "ingress", "declare_queryable", key), key
+
+
 def test_acl_bound_to_one_run(prepared):
     acl = scenario_access_control(prepared.system, run_id="run-7")
     assert all(k.startswith("dmpc/run-7/") for r in acl["rules"] for k in r["key_exprs"])

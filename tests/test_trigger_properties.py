@@ -12,14 +12,25 @@ the test rebuilds QP_i of step k itself, from the scenario's matrices and the re
 - c_i(t) = sum_j A_ij zhat_j(t) + B_ij vhat_j(t);
 
 and checks z(0) = x_i(k), z(t+1) = A_ii z(t) + B_ii v(t) + c_i(t), v(t) in U_i, z(t) in X_i
-(t = 1..N) and |z(N) - alpha_i(k)| <= beta(k), each to 1e-6. Every run ends without failure, and
-without fallbacks its cost J(k) does not increase (Theorem 3).
+(t = 1..N) and |z(N) - alpha_i(k)| <= beta(k), each to 1e-6. Every run ends without failure.
+
+The cost is held to what docs/algorithm.md promises for kept plans ("The cost: Theorem 3"): at a
+step k at which every agent keeps, the plans are the candidate of Theorem 3's proof and
+J(k) <= J(k-1) - l(x(k-1), u(k-1)), checked to 1e-9 max(1, J(0)) (measured over 600 random
+systems: at most 2e-10 above, with prediction errors e up to 7e-8 within trigger_threshold).
+A step at which some agent solves is not held to a decrease: with neighbours revising their plans
+at the same step the docs guarantee none ("What is and is not guaranteed"), whatever the trigger,
+and random systems break it. Example: three in those 600 raise J by 36 to 81 without a fallback,
+and one, whose Jacobi iteration at k = 0 never converges (a plan change of 0.73 at round 200 as at
+round 2000), raises J from 285.5 to 441.7 at k = 3 with trigger_cost 1e-6: no agent ever keeps
+there, and the run is the one of ``trigger: always`` to the last bit.
 """
 from __future__ import annotations
 
 import numpy as np
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
+from scipy.linalg import block_diag
 
 from dmpc.core.errors import DesignError
 from dmpc.records.run_folder import trajectory_arrays
@@ -111,8 +122,9 @@ def check_kept_plan(i: int, k: int, arrays: dict, scenario: dict, K: list[np.nda
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
 @given(scenario=coupled_systems())
-def kept_plans_checked(scenario: dict, tally: list[tuple[float, int]]) -> None:
-    """Run one system; check each of its kept plans; add (trigger_cost, plans checked) to ``tally``."""
+def kept_plans_checked(scenario: dict, tally: list[tuple[float, int, int]]) -> None:
+    """Run one system; check each of its kept plans and the cost at each step every agent kept; add
+    (trigger_cost, plans checked, steps every agent kept) to ``tally``."""
     try:
         prepared = prepare(validate_scenario(scenario))
     except DesignError:
@@ -124,10 +136,14 @@ def kept_plans_checked(scenario: dict, tally: list[tuple[float, int]]) -> None:
     K = [np.asarray(k, float) for k in prepared.design.gains.K]
     N = prepared.design.horizon
     kept, fallback = arrays["kept"], arrays["fallback"]
-    if not fallback.any():
-        # Theorem 3 with kept plans: a kept plan is the shifted plan, so J(k) does not increase
-        J = np.asarray(arrays["J"], float)
-        assert np.all(np.diff(J) <= 1e-9 * max(1.0, float(J[0]))), J
+    # Theorem 3 with kept plans: where every agent keeps, J(k) is the candidate's cost
+    J, x, u = np.asarray(arrays["J"], float), arrays["x"], arrays["u"]
+    Q = block_diag(*[np.array(s["Q"], float) for s in scenario["subsystems"]])
+    R = block_diag(*[np.array(s["R"], float) for s in scenario["subsystems"]])
+    all_kept = [k for k in range(1, STEPS) if kept[k].all()]
+    for k in all_kept:
+        stage = float(x[k - 1] @ Q @ x[k - 1] + u[k - 1] @ R @ u[k - 1])
+        assert J[k] <= J[k - 1] - stage + 1e-9 * max(1.0, float(J[0])), (k, J[k], J[k - 1], stage)
     assert kept.shape == (STEPS, len(scenario["subsystems"])) and not kept[0].any()  # nothing to keep at k = 0
     checked = 0
     for k, i in zip(*np.nonzero(kept)):
@@ -140,13 +156,15 @@ def kept_plans_checked(scenario: dict, tally: list[tuple[float, int]]) -> None:
     if cost >= 1e3 and arrays["rounds"][0] < 200:
         # the k = 0 plans agree (Jacobi converged): the shifted plans hold at k = 1 and are kept from then on
         assert checked > 0
-    tally.append((cost, checked))
+    tally.append((cost, checked, len(all_kept)))
 
 
 def test_every_kept_plan_is_feasible_for_its_qp():
-    tally: list[tuple[float, int]] = []
+    tally: list[tuple[float, int, int]] = []
     kept_plans_checked(tally=tally)
     # not vacuous: most examples keep plans (measured: every one with trigger_cost 1e3, and about
     # two in three of the others; where a neighbour re-solves every step its plan keeps changing
-    # the feed-forward, and the agents solve for "changed")
-    assert sum(checked > 0 for _, checked in tally) > len(tally) / 2, tally
+    # the feed-forward, and the agents solve for "changed"); and the cost is checked somewhere
+    # (measured: three examples in four have steps at which every agent keeps)
+    assert sum(checked > 0 for _, checked, _ in tally) > len(tally) / 2, tally
+    assert any(all_kept > 0 for _, _, all_kept in tally), tally

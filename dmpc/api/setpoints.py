@@ -14,7 +14,7 @@ from dmpc.bus.messages import SetpointAnswer
 from dmpc.bus.session import BusError
 from dmpc.core.errors import DmpcError
 from dmpc.records.files import STEP_LOG, SUMMARY
-from dmpc.runtime.setpoints import DEFAULT_TIMEOUT, components, scenario_subsystem, send_setpoint
+from dmpc.runtime.setpoints import DEFAULT_TIMEOUT, components, scenario_subsystem, send_setpoint, unanswered_text
 
 Components = Union[None, Sequence[Optional[float]], Mapping[str, Optional[float]]]
 """Requested components: None (all free), one value per component (None: free), or a map by name."""
@@ -36,8 +36,9 @@ class SetpointRefused(SetpointError, ValueError):
 
 
 class SetpointUnanswered(SetpointError, TimeoutError):
-    """No answer within the timeout: the coordinator was not reached, or the request did not reach it
-    (another run id, a run already over, or access control that denied it silently)."""
+    """No answer: not authorised or no run listening. The coordinator was not reached, or the request
+    did not reach it (another run id, a run already over, or a certificate other than the operator's,
+    whose request the access control ends unanswered)."""
 
 
 def setpoint(connect: str | Sequence[str], run_id: str, subsystem: str, x: Components = None, u: Components = None,
@@ -84,7 +85,9 @@ def setpoint(connect: str | Sequence[str], run_id: str, subsystem: str, x: Compo
         The coordinator refused it (a value outside X_i or U_i, an unknown subsystem, a method
         that does not track setpoints, a run that is over, ...).
     SetpointUnanswered
-        No answer within ``timeout``.
+        No answer within ``timeout``: not authorised or no run listening (another endpoint or run
+        id, a run that is over, or a certificate other than the operator's); or the endpoint
+        could not be reached.
     ValueError
         A value, name, endpoint or certificate directory that cannot be used (a
         ``dmpc.DmpcError`` too).
@@ -100,7 +103,7 @@ def setpoint(connect: str | Sequence[str], run_id: str, subsystem: str, x: Compo
     except BusError as exc:
         raise SetpointUnanswered(f"no answer from the coordinator of run {run_id}: {exc}") from None
     if answer is None:
-        raise SetpointUnanswered(f"no answer from the coordinator of run {run_id} within {timeout:g} s")
+        raise SetpointUnanswered(unanswered_text(run_id, connect, timeout))
     if not answer.accepted:
         raise SetpointRefused(f"refused: {answer.reason}", answer)
     return answer

@@ -8,7 +8,7 @@ from typing import Any
 
 from rich.progress import Progress
 
-from dmpc.bench import common, measures, setpoints, trigger
+from dmpc.bench import common, cooperative, measures, setpoints, trigger
 from dmpc.bench.common import cell
 from dmpc.bench.scale import HEADER as SCALE_HEADER
 from dmpc.bench.scale import markdown_row as scale_markdown_row
@@ -21,17 +21,22 @@ FULL: dict[str, Any] = {
     "baselines": [4, 16, 32, 64], "baseline_steps": 30, "design": [4, 8, 16, 32, 64, 128, 256, 1024],
     "design_compare": 256, "floor_sets": 5, "scale": [(256, 64, 30), (1024, 128, 10)], "setpoints": [4, 64, 256],
     "trigger": {"sweeps": [(4, 60), (64, 30)], "hosted": [(64, 1, 40), (1024, 128, 40)],
-                "carts": [1e-7, 1e-6, 1e-5, 1e-3], "carts_steps": 80}}
+                "carts": [1e-7, 1e-6, 1e-5, 1e-3], "carts_steps": 80},
+    "cooperative": {"inprocess": [("paper", 4, 60), ("chain", 64, 30), ("fourtank", 2, None)],
+                    "hosted": [("paper", 4, 1, 60), ("chain", 64, 1, 30), ("chain", 1024, 128, 10)]}}
 QUICK: dict[str, Any] = {
     "qp_horizons": [10], "qp_repeat": 3, "runtime": [(4, 300)], "baselines": [4], "baseline_steps": 30,
     "design": [4, 8], "design_compare": 8, "floor_sets": 3, "scale": [], "setpoints": [4],
-    "trigger": {"sweeps": [(4, 60)], "hosted": [], "carts": [1e-5], "carts_steps": 40}}
+    "trigger": {"sweeps": [(4, 60)], "hosted": [], "carts": [1e-5], "carts_steps": 40},
+    "cooperative": {"inprocess": [("paper", 4, 60)], "hosted": [("paper", 4, 1, 60)]}}
 """``floor_sets``: floor and run alternated that many times at M = 4 (once at larger M). ``scale``:
 rows (M, agents per process, steps) of the chain run with agents hosted many to a process.
 ``setpoints``: the M of the chain for what a setpoint costs (:mod:`dmpc.bench.setpoints`).
 ``trigger`` (:mod:`dmpc.bench.trigger`): ``sweeps``, (M, steps) in this process over the cost
 threshold; ``hosted``, (M, agents per process, steps) as processes; ``carts``, the disturbance
-bounds of the carts, run ``carts_steps`` steps."""
+bounds of the carts, run ``carts_steps`` steps. ``cooperative`` (:mod:`dmpc.bench.cooperative`):
+``inprocess``, (case, M, steps) in this process (steps None: the scenario's); ``hosted``, (case, M,
+agents per process, steps) as processes."""
 
 HISTORY_HEADING = "## History: earlier measurements (dated, not regenerated)"
 """Everything of a report from this heading on is written by hand and kept when it is regenerated."""
@@ -43,11 +48,13 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
     ``show_progress``: a progress bar on the terminal. The results as JSON-ready data."""
     plan = QUICK if quick else FULL
     tasks = (len(plan["qp_horizons"]) + len(plan["runtime"]) + 3 * len(plan["baselines"]) + len(plan["design"])
-             + len(plan["scale"]) + len(plan["setpoints"]) + trigger_tasks(plan["trigger"]))
+             + len(plan["scale"]) + len(plan["setpoints"]) + trigger_tasks(plan["trigger"])
+             + cooperative_tasks(plan["cooperative"]))
     results: dict = {"machine": common.machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                      "quick": quick, "qp": [], "runtime": [], "inprocess": [], "central_osqp": [],
                      "central_cvxpy": [], "design": [], "scale": [], "setpoints": [],
-                     "trigger": {"sweeps": [], "hosted": [], "carts": []}}
+                     "trigger": {"sweeps": [], "hosted": [], "carts": []},
+                     "cooperative": {"inprocess": [], "hosted": []}}
     started = time.monotonic()
     with Progress(console=stderr_console(), transient=True, disable=not show_progress) as progress, \
             common.workdir() as tmp:
@@ -81,6 +88,7 @@ def run_all(quick: bool, root: Path, show_progress: bool = True) -> dict:
             results["setpoints"].append({**setpoints.target_costs(M, root), **setpoints.step_costs(M, root=root)})
             step(f"setpoints M={M}")
         run_trigger(plan["trigger"], results["trigger"], Path(tmp), root, step)
+        run_cooperative(plan["cooperative"], results["cooperative"], Path(tmp), root, step)
     results["seconds"] = time.monotonic() - started
     results["machine"]["load_average_end"] = common.load_average()
     results["headline"] = headline(results)
@@ -106,6 +114,23 @@ def run_trigger(plan: dict, into: dict, workdir: Path, root: Path, step) -> None
     for M, per_process, steps in plan["hosted"]:
         into["hosted"].append(trigger.hosted_pair(M, per_process, steps, workdir, root))
         step(f"trigger hosted M={M}")
+
+
+def cooperative_tasks(plan: dict) -> int:
+    """The progress steps of the cooperative method's measures in ``plan`` (:data:`FULL`'s ``cooperative``)."""
+    return len(plan["inprocess"]) + len(plan["hosted"])
+
+
+def run_cooperative(plan: dict, into: dict, workdir: Path, root: Path, step) -> None:
+    """``tv-box-coop`` against ``tv-box`` (:mod:`dmpc.bench.cooperative`) as ``plan`` (:data:`FULL`'s
+    ``cooperative``) says, appended to ``into``; runs go to ``workdir``, ``root`` is the folder of
+    ``scenarios/``, and ``step(label)`` is called after each measure (progress)."""
+    for case, M, steps in plan["inprocess"]:
+        into["inprocess"].append(cooperative.inprocess_pair(case, M, steps, workdir, root))
+        step(f"cooperative {case} M={M}")
+    for case, M, per_process, steps in plan["hosted"]:
+        into["hosted"].append(cooperative.hosted_pair(case, M, per_process, steps, workdir, root))
+        step(f"cooperative hosted M={M}")
 
 
 def headline(results: dict) -> dict:
@@ -300,6 +325,7 @@ def markdown(results: dict, command: str) -> str:
     lines += scale_lines(results.get("scale", []))
     lines += setpoint_lines(results.get("setpoints", []))
     lines += trigger_lines(results.get("trigger") or {})
+    lines += cooperative_lines(results.get("cooperative") or {})
     return "\n".join(lines) + "\n"
 
 
@@ -431,6 +457,49 @@ def trigger_lines(measured: dict) -> list[str]:
                   "trigger fire; below it, a disturbance of a neighbour still changes an agent's feed-forward.", "",
                   *trigger.table(trigger.CARTS_HEADER, [r for d in measured["carts"] for r in trigger.carts_rows(d)])]
     return lines
+
+
+COOPERATIVE_HEADING = "## Cooperative DMPC against tv-box"
+
+
+def cooperative_lines(measured: dict) -> list[str]:
+    """The section of ``tv-box-coop`` against ``tv-box`` (:mod:`dmpc.bench.cooperative`), from its
+    ``measured`` results."""
+    if not any(measured.get(key) for key in ("inprocess", "hosted")):
+        return []
+    lines = ["", COOPERATIVE_HEADING, "",
+             "Each case runs with `options.method: tv-box`, then with `tv-box-coop` on the same design "
+             "(`dmpc.bench.cooperative`). With `tv-box-coop` every release carries the whole system's iterate, "
+             "z (N+1, n) and v (N, m), and each agent answers with its proposal: its own inputs minimising the cost "
+             "of every subsystem they reach, a QP over the states of that reach (docs/algorithm.md, \"Cooperative "
+             "DMPC\"). Cost: the closed-loop cost; / tv-box: over the `tv-box` run's (\"-\" where `tv-box` failed). "
+             "k = 0 rounds: the rounds of the first step (`tv-box` iterates Jacobi to convergence, `tv-box-coop` "
+             "starts from the centralised QP's plan where the terminal controller's rollout leaves the "
+             "constraints). Step median: k >= 1, in this process the wall time between steps' completions, as "
+             "processes the plant's step time; slowest step: the largest of those. Run wall: `summary.json`'s "
+             "`wall_time_s`, k = 0 and every step (not the start-up). Plan messages / step: from k = 1 (the run's plan messages less M per "
+             "round of k = 0; \"all k\": over every step, where not every agent answered every round); plan B / "
+             "message: their bytes over their number (`summary.json`). Release bytes / step: the payload of a "
+             "release as the coordinator encodes it, measured on the in-memory bus (the last release of step 1; "
+             "\"(k = 0)\": the first release, where stepping every agent of the run once more in this process "
+             "would take minutes; on the chain every release of a run has that size), times the rounds per step; "
+             "it is published once and every agent process receives a copy. kB / step: the releases and the plan "
+             "messages of a step from k = 1, each payload counted once. QP solve median: `summary.json`, every "
+             "agent and step. QP iterations: OSQP's, from k = 1, median and largest over every agent and step. "
+             "Speed figure: this machine's just before the pair (ms for 10^6 Python additions)."]
+    if measured.get("inprocess"):
+        lines += ["", "### In this process", "",
+                  *trigger.table(cooperative.INPROCESS_HEADER,
+                                 [r for p in measured["inprocess"] for r in cooperative.inprocess_rows(p)])]
+    if measured.get("hosted"):
+        lines += ["", "### As processes", "",
+                  "`dmpc run` (the launcher after the design), both runs back to back; agents / process 1: one "
+                  "process per agent, otherwise hosted many to a process (`--agents-per-process`). Start-up: the "
+                  "processes started to the first release.", "",
+                  *trigger.table(cooperative.HOSTED_HEADER,
+                                 [r for p in measured["hosted"] for r in cooperative.hosted_rows(p)])]
+    note = cooperative.payload_note([*measured.get("inprocess", []), *measured.get("hosted", [])])
+    return lines + (["", note] if note else [])
 
 
 def kept_history(previous: str) -> str:

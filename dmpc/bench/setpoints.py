@@ -4,7 +4,9 @@ step time of a run around a target (the chain of M copies of the paper's subsyst
 A new request costs one steady-state QP (Clarabel) the first time it is seen; its terminal set
 is the design's X^f scaled by lambda, so it costs a gauge (lambda) and one sigma, no LP. The
 governor costs up to 40 bisections of two slacks. In a run, the target of step k + 1 is decided
-at the end of step k: that step pays for it.
+at the end of step k, with the QP computed before: a scenario's schedule before step 0, a request
+sent while the run goes on beside the run (benchmarks/live_setpoints.py), so that step pays only
+for the governor.
 """
 from __future__ import annotations
 

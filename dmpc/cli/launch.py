@@ -21,7 +21,6 @@ from dmpc.cli.common import (
     MethodOpt,
     ModelOpt,
     PlantTimeoutOpt,
-    RunIdOpt,
     ScenarioArg,
     SeedOpt,
     SetOpt,
@@ -62,10 +61,33 @@ def _run_centralized_here(prepared, out: Path | None, quiet: bool, network_flags
     raise typer.Exit(run_exit_code(summary, failure))
 
 
+RUN_ID_HELP = ("The run's id, the key prefix shared by its processes (default: the scenario's name and 8 random hex "
+               "digits, e.g. paper-1a2b3c4d, printed when the run starts). An operator's program and dmpc watch "
+               "--connect need it.")
+
+
+def default_run_id(name: str) -> str:
+    """``dmpc run``'s id of a run of the scenario ``name``: the name, made a key chunk (``A-Z a-z 0-9 _ . -``,
+    at most 55 characters), ``-`` and 8 random hex digits (``paper-1a2b3c4d``), as ``dmpc.run`` makes it."""
+    import re
+    import secrets
+
+    return re.sub(r"[^A-Za-z0-9_.-]", "-", name)[:55] + "-" + secrets.token_hex(4)
+
+
+def designing_line(run_id: str, port: int | None, tls: bool) -> str:
+    """What ``dmpc run`` says before it designs: the run's id ``run_id``, and that the coordinator
+    listens (on ``port`` of this machine, over TLS with ``tls``, when the port is fixed) once the
+    design is done."""
+    where = f"on {'tls' if tls else 'tcp'}/127.0.0.1:{port} " if port is not None else ""
+    return f"run id {run_id}: designing the controllers; the coordinator listens {where}once the design is done"
+
+
 def run(scenario: ScenarioArg,
         out: Annotated[Optional[Path], typer.Option("--out", help="Run folder to write (default: runs/<scenario>-<time>).")] = None,
         steps: StepsOpt = None,
-        run_id: RunIdOpt = None, startup_timeout: StartupOpt = 60.0,
+        run_id: Annotated[Optional[str], typer.Option("--run-id", help=RUN_ID_HELP, show_default=False)] = None,
+        startup_timeout: StartupOpt = 60.0,
         quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
         tls: TlsOpt = None,
         secure: Annotated[bool, typer.Option("--secure", help="Make certificates and access control in the run folder (tls/) and run every link over TLS with them.")] = False,
@@ -86,8 +108,6 @@ def run(scenario: ScenarioArg,
     it again, ``--fail-fast`` stops the run instead). ``--method centralized`` has no agents: it
     runs its one QP per step in this process.
     """
-    import secrets
-
     from dmpc.records.tables import print_summary  # start-up time: tables only where printed
     from dmpc.runtime.launcher import TOPOLOGIES, default_topology, launch  # start-up time: only for `dmpc run`
     from dmpc.runtime.supervisor import RestartPolicy  # start-up time: only for `dmpc run`
@@ -95,10 +115,10 @@ def run(scenario: ScenarioArg,
 
     if tls is not None and secure:
         raise InputError("--tls and --secure exclude each other (--secure makes its own certificates)")
-    prepared = prepare(load_scenario_file(scenario, with_method(fault_overrides(set_, delay, jitter, loss, seed, deadline), method),
-                             steps))
-    prepared = with_model(prepared, model)
-    if not method_spec(prepared.method).distributed:
+    scn = load_scenario_file(scenario, with_method(fault_overrides(set_, delay, jitter, loss, seed, deadline), method),
+                             steps)
+    if not method_spec(scn.options.method).distributed:
+        prepared = with_model(prepare(scn), model)
         network = {"--tls": tls is not None, "--secure": secure, "--topology": topology is not None,
                    "--run-id": run_id is not None, "--delay": delay is not None, "--jitter": jitter is not None,
                    "--loss": loss is not None, "--deadline": deadline is not None}
@@ -106,10 +126,12 @@ def run(scenario: ScenarioArg,
         network.update({"--restart": restart > 0, "--fail-fast": fail_fast, "--lease": lease is not None,
                         "--agents-per-process": agents_per_process > 1})
         _run_centralized_here(prepared, out, quiet, [flag for flag, given in network.items() if given])
+    # what needs no design is checked before it: the design may take minutes
     external = checked_side(plant_side, "--plant") == "external"
     if external and model is not None:
         raise InputError("--model: the plant is outside (--plant external): give the model to it")
-    for role in [keys.COORDINATOR_ROLE] + [keys.agent_role(name) for name in prepared.names] if tls is not None else []:
+    names = [sub.name for sub in scn.resolved_subsystems()]
+    for role in [keys.COORDINATOR_ROLE] + [keys.agent_role(name) for name in names] if tls is not None else []:
         role_security(tls, role)  # every file present before any process starts
     if agents_per_process > 1 and (tls is not None or secure):
         raise InputError(f"--agents-per-process {agents_per_process}: a certificate belongs to one agent, so agents "
@@ -117,9 +139,12 @@ def run(scenario: ScenarioArg,
                          "--agents-per-process at 1 for a run over TLS")
     if topology is not None and topology not in TOPOLOGIES:
         raise InputError(f"--topology: expected mesh or star, got {topology!r}")
-    topology = topology or default_topology(-(-prepared.system.M // agents_per_process))
+    topology = topology or default_topology(-(-len(names) // agents_per_process))
+    rid = checked_run_id(run_id or default_run_id(scn.name), None)
+    if external or not quiet:
+        print(designing_line(rid, port, tls is not None or secure), file=sys.stderr, flush=True)
+    prepared = with_model(prepare(scn), model)
     out = default_out(out, prepared.name)
-    rid = checked_run_id(run_id or f"{prepared.name}-{secrets.token_hex(4)}", prepared)
     watcher = None
     if watch:
         from dmpc.watch.attach import Watcher  # start-up time: the live view only with --watch
@@ -180,8 +205,9 @@ def watch(run_dir: Annotated[Optional[Path], typer.Argument(help="A run folder: 
     if run_dir is None and not connect:
         raise InputError("give a run folder to replay, or --connect ENDPOINT --run-id ID to watch a live run")
     if connect and not run_id:
-        raise InputError("--connect needs --run-id: the id of the run to watch (the plant's --run-id, by default "
-                         "its scenario's name)")
+        raise InputError("--connect needs --run-id: the id of the run to watch (the one dmpc run printed, its "
+                         "scenario's name and 8 hex digits unless given --run-id; dmpc plant and dmpc coordinator use "
+                         "the scenario's name unless given one)")
     if tls is not None and not connect:
         raise InputError("--tls applies to --connect only")
     if run_dir is not None and not run_dir.is_dir():

@@ -26,6 +26,7 @@ from dmpc.cli.common import (
     with_method,
     with_model,
 )
+from dmpc.prepared import estimation_json
 from dmpc.records.files import COMPARISON, SUMMARY
 from dmpc.records.run_folder import claim_folder, write_json
 from dmpc.terminal.console import error_line, stderr_console, stdout_console
@@ -45,8 +46,19 @@ def validate(scenario: ScenarioArg, set_: SetOpt = None) -> None:
 
     scn = load_scenario_file(scenario, set_)
     subs = scn.resolved_subsystems()
+    system = None
+    if scn.estimation is not None:
+        from dmpc.scenario import build_system  # start-up time: as above
+        from dmpc.setup.estimation import check_estimation  # start-up time: as above
+
+        system = build_system(scn)
+        detectable = check_estimation(scn, system)[-1]  # DesignError (exit 2) where a condition fails
     print(f"{scenario}: valid ({len(subs)} subsystems, horizon {scn.horizon}, gains {scn.design.gains})")
-    _warn_coupling(scenario_coupling(scn), scn.options.method, [s.name for s in subs])
+    if scn.estimation is not None:
+        print(f"estimation: detectable ({detectable.p} measured outputs, {detectable.nd} disturbances; the rank "
+              f"condition holds per subsystem and for the coupled system, n + n_d = {detectable.rank}); "
+              "'dmpc design' designs the gains")
+    _warn_coupling(scenario_coupling(scn, system), scn.options.method, [s.name for s in subs])
 
 
 def design(scenario: ScenarioArg, set_: SetOpt = None,
@@ -62,8 +74,25 @@ def design(scenario: ScenarioArg, set_: SetOpt = None,
     else:
         from dmpc.records.tables import design_report  # start-up time: tables only where printed
 
-        stdout_console().print(design_report(prepared, coupling_text(coupling, prepared.names)))
+        report = design_report(prepared, coupling_text(coupling, prepared.names))
+        for what, value in estimation_rows(prepared):
+            report.add_row(what, value)
+        stdout_console().print(report)
     _warn_coupling(coupling, prepared.method, prepared.names)
+
+
+def estimation_rows(prepared) -> list[tuple[str, str]]:
+    """The rows of the design report on the ``prepared`` run's estimator ([] without one): the coupled
+    estimator's spectral radius, then each agent's filter."""
+    if prepared.estimator is None:
+        return []
+    data = estimation_json(prepared.estimator)
+    rows = [("estimator", f"coupled spectral radius {data['coupled_radius']:.4f} (the estimation error's dynamics "
+                          "(I - L C) A over the whole system, couplings included; stable below 1)")]
+    for name, sub in data["subsystems"].items():
+        rows.append((f"L_{name}", f"{sub['outputs']} measured output(s), {sub['disturbances']} {sub['disturbance']} "
+                                  f"disturbance(s); own filter's spectral radius {sub['radius']:.4f}"))
+    return rows
 
 
 def _warn_coupling(coupling, method: str, names: list[str]) -> None:

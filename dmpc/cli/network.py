@@ -340,9 +340,14 @@ def setpoint(connect: ConnectOpt = None,
              timeout: Annotated[float, typer.Option("--timeout", min=0.1, help="Seconds to wait for the coordinator's answer, connecting included.")] = 5.0,
              name: Annotated[str, typer.Option("--name", help="This program's name as the request's sender (where the answer is sent).")] = "cli") -> None:
     """Change a subsystem's setpoint while a run goes on: send the request to the run's coordinator
-    and wait for its answer (exit 0 accepted, 2 refused, 1 no answer)."""
+    and wait for its answer (exit 0 accepted, 2 refused, 1 not authorised or no run listening)."""
     from dmpc.bus.session import BusError  # start-up time: zenoh only for network commands
-    from dmpc.runtime.setpoints import components, scenario_subsystem, send_setpoint  # start-up time: zenoh only here
+    from dmpc.runtime.setpoints import (  # start-up time: zenoh only here
+        components,
+        scenario_subsystem,
+        send_setpoint,
+        unanswered_text,
+    )
 
     if not connect:
         raise InputError("--connect: the coordinator's endpoint is needed, e.g. tcp/127.0.0.1:7447")
@@ -368,7 +373,7 @@ def setpoint(connect: ConnectOpt = None,
         error_line(str(exc))
         raise typer.Exit(EXIT_FAILED) from None
     if answer is None:
-        print(f"no answer from the coordinator of run {run_id} within {timeout:g} s", file=sys.stderr)
+        print(unanswered_text(run_id, connect, timeout), file=sys.stderr)
         raise typer.Exit(EXIT_FAILED)
     if not answer.accepted:
         print(f"refused: {' '.join(answer.reason.split())}", file=sys.stderr)

@@ -16,9 +16,12 @@ centralised problem when the iterate is: it is feasible, and by convexity its co
 weighted mean of theirs, so at most the iterate's (Stewart, Venkat, Rawlings & Wright, "Cooperative
 distributed model predictive control", Syst. Control Lett. 59, 2010). :func:`combine` takes
 w_l = s for every agent: ``equal`` with s = 1/M (the paper's weights), ``line`` with the s in
-[1/M, 1] of least cost whose iterate still meets every constraint (found exactly: the cost is a
-quadratic in s and every constraint row an affine function of it). ``line`` is never worse than
-``equal`` and takes the whole of every proposal where the agents do not interact.
+[0, 1] of least cost whose iterate still meets every constraint (found exactly: the cost is a
+quadratic in s and every constraint row an affine function of it). s = 1/M meets them, so
+``line`` is never worse than ``equal``, and it takes the whole of every proposal where the agents
+do not interact. Proposals are solved to the QP solver's accuracy, not exactly: the rows are met
+to ROW_TOLERANCE beyond what the iterate already does, and a step that would leave one by more
+stops short (for either rule) — feasibility is never traded for the weights.
 """
 from __future__ import annotations
 
@@ -237,9 +240,10 @@ def combine(model: GlobalModel, iterate: Iterate, proposals: dict[int, np.ndarra
         return Combination(iterate, 0.0, before, before, 0.0)
     dz = model.simulate(np.zeros(iterate.z.shape[1]), dv)
     equal = 1.0 / model.M
-    step = equal
-    if rule == "line":
-        step = _best_step(model, iterate, dz, dv, x_s, u_s, alpha, beta, equal)
+    top = _largest_step(model, iterate, dz, dv, x_s, u_s, alpha, beta)
+    step = min(equal, top) if rule == "equal" else _best_step(model, iterate, dz, dv, top)
+    if step <= 0.0:
+        return Combination(iterate, 0.0, before, before, 0.0)
     nxt = Iterate(iterate.z + step * dz, iterate.v + step * dv)
     after = model.cost(nxt)
     if after > before:
@@ -251,21 +255,28 @@ def combine(model: GlobalModel, iterate: Iterate, proposals: dict[int, np.ndarra
     return Combination(nxt, step, before, after, change)
 
 
-def _best_step(model: GlobalModel, iterate: Iterate, dz: np.ndarray, dv: np.ndarray, x_s: np.ndarray,
-               u_s: np.ndarray, alpha: np.ndarray, beta: float, equal: float) -> float:
-    """The s in [equal, 1] of least cost whose iterate meets every row (within ROW_TOLERANCE of
-    what s = 0 and s = equal already do)."""
+def _best_step(model: GlobalModel, iterate: Iterate, dz: np.ndarray, dv: np.ndarray, top: float) -> float:
+    """The s in [0, top] of least cost: V(s) = V(0) + 2 s g + s^2 h is a convex quadratic."""
     g = model._inner(iterate.z, iterate.v, dz, dv)
     h = model._inner(dz, dv, dz, dv)
     if h <= 0.0:
-        return equal
-    free = -g / h  # V(s) = V(0) + 2 s g + s^2 h
+        return 0.0
+    return float(min(max(-g / h, 0.0), top))
+
+
+def _largest_step(model: GlobalModel, iterate: Iterate, dz: np.ndarray, dv: np.ndarray, x_s: np.ndarray,
+                  u_s: np.ndarray, alpha: np.ndarray, beta: float) -> float:
+    """The largest s in [0, 1] whose iterate meets every row within ROW_TOLERANCE of what the
+    iterate itself does (a ratio test: each row is affine in s).
+
+    With proposals that meet their QPs' rows exactly, s = 1/M always passes (the iterate is a
+    convex combination of feasible points); proposals solved only to the solver's accuracy may
+    leave a row by more than the tolerance, and then the step stops short of where they would."""
     values, lower, upper = model.rows(iterate, x_s, u_s, alpha, beta)
     direction, _, _ = model.rows(Iterate(dz, dv), np.zeros_like(x_s), np.zeros_like(u_s), np.zeros_like(alpha), 0.0)
     # direction holds the rows' change per unit s (the rows are linear in the iterate; the bounds
     # came out of the second call shifted by zero)
-    allowance = max(_largest_excess(values, lower, upper),
-                    _largest_excess(values + equal * direction, lower, upper)) + ROW_TOLERANCE
+    allowance = _largest_excess(values, lower, upper) + ROW_TOLERANCE
     hi = upper + allowance * np.maximum(1.0, np.abs(upper))
     lo = lower - allowance * np.maximum(1.0, np.abs(lower))
     top = 1.0
@@ -276,5 +287,4 @@ def _best_step(model: GlobalModel, iterate: Iterate, dz: np.ndarray, dv: np.ndar
         down = direction < 0
         if down.any():
             top = min(top, float(np.min((lo[down] - values[down]) / direction[down])))
-    top = max(top, equal)
-    return float(min(max(free, equal), top))
+    return max(top, 0.0)

@@ -199,6 +199,10 @@ class StepRecord:
         See above.
     solve_reason : list of str or None
         See above.
+    estimate : Estimate or None
+        With estimation (:class:`dmpc.coordinator.estimation.Estimate`): the outputs y(k) measured,
+        the estimates x^(k), d^(k) the controllers worked from, and the innovation's size; None
+        without. ``x`` is then the plant's own state, where the plant reports it.
     """
 
     k: int
@@ -228,3 +232,4 @@ class StepRecord:
     r_next: np.ndarray | None = None
     tracking: Any = None
     solve_reason: list[str] | None = None
+    estimate: Any = None

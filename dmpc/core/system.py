@@ -149,6 +149,9 @@ class Subsystem:
     x0 : ndarray, shape (n_i,)
     input_set : LinearSet of dimension m_i
     state_set : LinearSet of dimension n_i, or None for R^n_i
+    C : ndarray, shape (p_i, n_i), or None
+        What the plant measures of the subsystem, y_i = C x_i; None (the default) is the identity:
+        every state is measured, y_i = x_i.
     """
 
     name: str
@@ -159,6 +162,7 @@ class Subsystem:
     x0: np.ndarray
     input_set: LinearSet
     state_set: LinearSet | None = None
+    C: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -167,6 +171,16 @@ class Subsystem:
     @property
     def m(self) -> int:
         return int(self.B.shape[1])
+
+    @property
+    def p(self) -> int:
+        """The number of measured outputs p_i (n_i when C is None)."""
+        return self.n if self.C is None else int(self.C.shape[0])
+
+    @property
+    def output_matrix(self) -> np.ndarray:
+        """C_i, shape (p_i, n_i): the identity when C is None."""
+        return np.eye(self.n) if self.C is None else np.asarray(self.C, dtype=float)
 
 
 @dataclass(frozen=True)
@@ -240,6 +254,25 @@ class CoupledSystem:
     def us(self, i: int) -> slice:
         """The slice of subsystem i's inputs in the global input."""
         return slice(self.input_offsets[i], self.input_offsets[i + 1])
+
+    @cached_property
+    def output_offsets(self) -> np.ndarray:
+        """Start of each subsystem's block in the global output y = C x, shape (M+1,)."""
+        return np.concatenate([[0], np.cumsum([s.p for s in self.subsystems])]).astype(int)
+
+    def ys(self, i: int) -> slice:
+        """The slice of subsystem i's outputs in the global output."""
+        return slice(int(self.output_offsets[i]), int(self.output_offsets[i + 1]))
+
+    @property
+    def p(self) -> int:
+        """The number of measured outputs (n when every subsystem measures its whole state)."""
+        return int(self.output_offsets[-1])
+
+    @cached_property
+    def C(self) -> np.ndarray:
+        """Global measurement matrix, block diagonal, shape (p, n): y = C x."""
+        return block_diag(*[s.output_matrix for s in self.subsystems])
 
     @property
     def n(self) -> int:

@@ -1,6 +1,6 @@
 """Offset-free estimation: integrating disturbance models, their detectability, the agents'
 steady-state Kalman gains, the observer and the steady-state targets as an affine map of the
-estimate (issue 31; docs/algorithm.md and ALGORITHM.md section 9, "Offset-free MPC").
+estimate (docs/algorithm.md, "Offset-free tracking").
 
 Each subsystem i measures y_i = C_i x_i and carries n_d,i integrating disturbances d_i:
 

@@ -215,7 +215,13 @@ def solve_lmi(system: CoupledSystem, scaling: list[np.ndarray], objective: str, 
         setattr(options, key, value)
     solver = clarabel.DefaultSolver(sp.csc_matrix((builder.variables, builder.variables)), q, A, b, builder.cones,
                                     options)
-    result = solver.solve()
+    try:
+        result = solver.solve()
+    except BaseException as exc:  # Clarabel's Rust panics arrive as pyo3's PanicException, a BaseException
+        if type(exc).__name__ != "PanicException":
+            raise
+        # seen as "Eigval error" on a badly conditioned LMI: a failed solve, like any other solver error
+        return ConicSolution(None, None, "solver_error")
     kind = _STATUS.get(str(result.status), "solver_error")
     if kind not in ("optimal", "optimal_inaccurate"):
         return ConicSolution(None, None, kind)

@@ -15,8 +15,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dmpc.bus.faults import FaultPlan
+from dmpc.core.measurement import MeasurementNoise
 from dmpc.core.steps import DEFAULT_METHOD, Coupling, Method, Mode, ProtocolOptions, TriggerOptions
 from dmpc.core.system import CoupledSystem
+from dmpc.estimation.kalman import EstimatorDesign
 from dmpc.methods import lacks
 from dmpc.offline import ControllerDesign
 from dmpc.tracking.schedule import SetpointEntry
@@ -50,6 +52,8 @@ class PlantSetup:
         The user's plant for ``function``.
     function_name : str
         How the function is named (``module:function``).
+    measurement_noise : MeasurementNoise or None
+        v(k) (p,), added to the outputs y(k) = C x(k) the plant reports; None: exact measurements.
     """
 
     model: str = "nominal"
@@ -60,6 +64,7 @@ class PlantSetup:
     disturbance_bound: np.ndarray | None = None
     function: PlantFunction | None = None
     function_name: str = ""
+    measurement_noise: MeasurementNoise | None = None
 
     def describe(self) -> dict:
         """What the plant was, for ``summary.json`` (``plant``)."""
@@ -69,6 +74,9 @@ class PlantSetup:
         if self.disturbance is not None:
             out["disturbance"] = self.disturbance_kind
             out["disturbance_max_abs"] = float(np.max(np.abs(self.disturbance), initial=0.0))
+        if self.measurement_noise is not None:
+            out["measurement_noise_max_std"] = float(np.max(self.measurement_noise.std, initial=0.0))
+            out["measurement_noise_seed"] = self.measurement_noise.seed
         return out
 
 
@@ -105,6 +113,10 @@ class Prepared:
         The fraction of every bound setpoint targets keep free.
     trigger : TriggerOptions
         When the agents solve (``always``: at every step).
+    estimator : EstimatorDesign or None
+        The agents' observers (scenario ``estimation``): the augmented model with every subsystem's C
+        and disturbance model, and the gains; None without estimation (the plant reports the whole
+        state).
     """
 
     scenario: "Scenario | None"
@@ -124,6 +136,7 @@ class Prepared:
     setpoints: tuple[SetpointEntry, ...] = ()
     setpoint_margin: float = DEFAULT_MARGIN
     trigger: TriggerOptions = TriggerOptions()
+    estimator: EstimatorDesign | None = None
 
     @property
     def tracks(self) -> bool:
@@ -143,6 +156,8 @@ class Prepared:
             data["start"] = self.design.start
         if self.model is not None:
             data["model"] = self.model
+        if self.estimator is not None:
+            data["estimation"] = estimation_json(self.estimator)
         return data
 
     @property
@@ -151,10 +166,44 @@ class Prepared:
         return None if self.deadline is None else 0.5 * self.deadline
 
 
+def estimation_json(estimator: EstimatorDesign) -> dict:
+    """The estimator's figures for ``design.json`` and ``dmpc design --json`` (``estimation``): per
+    subsystem its disturbance model, outputs p, disturbances n_d and the spectral radius of its own
+    filter's error dynamics (couplings left out); the coupled estimator's spectral radius (below 1);
+    and the ranks of the detectability checks.
+
+    Parameters
+    ----------
+    estimator : EstimatorDesign
+    """
+    model = estimator.model
+    subsystems = {part.name: {"disturbance": part.kind, "outputs": part.p, "disturbances": part.nd,
+                              "radius": gain.radius}
+                  for part, gain in zip(model.parts, estimator.gains)}
+    out: dict = {"subsystems": subsystems, "coupled_radius": estimator.radius}
+    if estimator.detectability:
+        out["detectability"] = [{"where": d.where, "n": d.n, "nd": d.nd, "p": d.p, "rank": d.rank}
+                                for d in estimator.detectability]
+    return out
+
+
+def _estimator_hash(estimator: EstimatorDesign) -> dict:
+    """What every process's estimator must agree on: each subsystem's disturbance model, C and gain L
+    (the hash of their float64 bytes)."""
+    digest = hashlib.sha256()
+    for part, gain in zip(estimator.model.parts, estimator.gains):
+        for matrix in (part.C, gain.L):
+            array = np.ascontiguousarray(matrix, dtype=np.float64)
+            digest.update(repr(array.shape).encode())
+            digest.update(array.tobytes())
+    return {"disturbance": [part.kind for part in estimator.model.parts], "gains": digest.hexdigest()}
+
+
 def design_digest(design: ControllerDesign, method: Method = DEFAULT_METHOD,
-                  trigger: TriggerOptions | None = None) -> str:
-    """Short hash of the design, of the method unless it is the default ``tv-box``, and of the
-    event trigger if there is one (every process must decide alike).
+                  trigger: TriggerOptions | None = None, estimator: EstimatorDesign | None = None) -> str:
+    """Short hash of the design, of the method unless it is the default ``tv-box``, of the
+    event trigger if there is one, and of the estimator if there is one (every process must decide
+    alike).
 
     Omega enters through the hash of its float64 bytes and its shape: the same for an Omega read
     back from a file (JSON keeps every float exactly), and far cheaper than its text, which has
@@ -167,5 +216,7 @@ def design_digest(design: ControllerDesign, method: Method = DEFAULT_METHOD,
         data["method"] = method
     if trigger is not None and trigger.event:
         data["trigger"] = trigger.to_json()
+    if estimator is not None:
+        data["estimation"] = _estimator_hash(estimator)
     text = json.dumps(data, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -4,6 +4,11 @@
 agent process imports neither the scenario schema (pydantic) nor the design solvers: it
 starts faster and stays smaller. The design digest inside is checked by the plant as usual.
 The bundle is derived data: the scenario file stays the source of truth.
+
+With ``estimation``, the bundle carries each subsystem's C and the estimator's gains themselves
+(L, P and the noise weights, as JSON floats, which read back exactly): an agent rebuilds the same
+:class:`~dmpc.estimation.kalman.EstimatorDesign` bit for bit without solving a Riccati equation or
+loading scipy.linalg, and the design digest, which covers C and L, checks that it did.
 """
 from __future__ import annotations
 
@@ -14,8 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from dmpc.bus.faults import FaultPlan
+from dmpc.core.errors import DesignError
 from dmpc.core.steps import ProtocolOptions, TriggerOptions
 from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
+from dmpc.estimation.kalman import EstimatorDesign, LocalGain, NoiseWeights
+from dmpc.estimation.model import augment
 from dmpc.methods import DEFAULT_METHOD, method_spec
 from dmpc.offline import design_from_json
 from dmpc.offline.tubes import Tightening
@@ -64,7 +72,8 @@ def bundle_json(prepared: Prepared) -> dict:
         "coupling": prepared.coupling,
         "method": prepared.method,
         "subsystems": [{"name": s.name, "A": s.A.tolist(), "B": s.B.tolist(), "Q": s.Q.tolist(), "R": s.R.tolist(),
-                        "x0": s.x0.tolist(), "input": _set_json(s.input_set), "state": _set_json(s.state_set)}
+                        "x0": s.x0.tolist(), "input": _set_json(s.input_set), "state": _set_json(s.state_set),
+                        **({} if s.C is None else {"C": s.C.tolist()})}
                        for s in system.subsystems],
         "couplings": [{"target": c.target, "source": c.source, "A": c.A.tolist(), "B": c.B.tolist()}
                       for c in system.couplings],
@@ -76,7 +85,32 @@ def bundle_json(prepared: Prepared) -> dict:
         "mode": prepared.mode, "dt": prepared.dt, "deadline": prepared.deadline,
         "faults": prepared.faults.to_json(),
         "trigger": prepared.trigger.to_json(),
+        **({} if prepared.estimator is None else {"estimation": _estimator_json(prepared.estimator)}),
     }
+
+
+def _estimator_json(estimator: EstimatorDesign) -> dict:
+    """The disturbance models and every agent's gain, L and P with their noise weights."""
+    return {"disturbance": [part.kind for part in estimator.model.parts],
+            "gains": [{"L": g.L.tolist(), "P": g.P.tolist(), "radius": g.radius,
+                       "noise": {"state": g.noise.state.tolist(), "disturbance": g.noise.disturbance.tolist(),
+                                 "measurement": g.noise.measurement.tolist()}} for g in estimator.gains]}
+
+
+def _estimator_from(system: CoupledSystem, d: dict) -> EstimatorDesign:
+    """The estimator written by :func:`_estimator_json` for ``system`` (the detectability figures stay
+    with the design that checked them)."""
+    model = augment(system, [s.C for s in system.subsystems], [str(kind) for kind in d["disturbance"]])
+    if len(d["gains"]) != model.M:
+        raise ValueError(f"{len(d['gains'])} estimator gains for {model.M} subsystems")
+    gains = []
+    for part, g in zip(model.parts, d["gains"]):
+        noise = NoiseWeights(*(np.array(g["noise"][key], float).reshape(size, size) for key, size in
+                               (("state", part.n), ("disturbance", part.nd), ("measurement", part.p))))
+        L = np.array(g["L"], float).reshape(part.n + part.nd, part.p)
+        P = np.array(g["P"], float).reshape(part.n + part.nd, part.n + part.nd)
+        gains.append(LocalGain(part.name, L, P, noise, float(g["radius"])))
+    return EstimatorDesign(model, tuple(gains))
 
 
 def write_bundle(prepared: Prepared, path: Path) -> None:
@@ -92,7 +126,9 @@ def load_bundle(path: Path) -> Prepared:
             raise ValueError(f"bundle version {d.get('bundle_version')!r} is not {BUNDLE_VERSION}")
         subsystems = tuple(Subsystem(s["name"], np.array(s["A"], float), np.array(s["B"], float),
                                      np.array(s["Q"], float), np.array(s["R"], float), np.array(s["x0"], float),
-                                     _linear_set(s["input"]), _set_from(s["state"])) for s in d["subsystems"])
+                                     _linear_set(s["input"]), _set_from(s["state"]),
+                                     None if s.get("C") is None else np.array(s["C"], float).reshape(-1, len(s["A"])))
+                           for s in d["subsystems"])
         couplings = tuple(Coupling(c["target"], c["source"], np.array(c["A"], float), np.array(c["B"], float))
                           for c in d["couplings"])
         system = CoupledSystem(subsystems, couplings, tuple(tuple(e) for e in d["edges"]))
@@ -109,11 +145,13 @@ def load_bundle(path: Path) -> Prepared:
         plan = FaultPlan.from_json(d["faults"])
         method = method_spec(str(d.get("method", DEFAULT_METHOD))).name
         trigger = TriggerOptions.from_json(d.get("trigger", {}))
-        prepared = Prepared(scenario=None, system=system, design=design, digest=design_digest(design, method, trigger),
+        estimator = None if d.get("estimation") is None else _estimator_from(system, d["estimation"])
+        prepared = Prepared(scenario=None, system=system, design=design,
+                            digest=design_digest(design, method, trigger, estimator),
                             protocol=ProtocolOptions.from_json(d["protocol"]), mode=d["mode"], dt=float(d["dt"]),
                             deadline=d["deadline"], faults=plan, name=d["name"], coupling=d["coupling"],
-                            method=method, trigger=trigger)
-    except (OSError, KeyError, TypeError, ValueError, IndexError) as exc:
+                            method=method, trigger=trigger, estimator=estimator)
+    except (OSError, KeyError, TypeError, ValueError, IndexError, DesignError) as exc:
         raise ValueError(f"{path}: not a usable run bundle ({exc})") from None
     if prepared.digest != design_data.get("digest"):
         raise ValueError(f"{path}: the design does not match its digest")

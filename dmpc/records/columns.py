@@ -120,6 +120,9 @@ class StepColumns:
             values["r"] = rec.r
         if rec.solve_reason is not None:
             values["kept"] = [status == KEPT for status in rec.status]
+        if rec.estimate is not None:
+            e = rec.estimate
+            values.update({"y": e.y, "x_hat": e.x_hat, "d_hat": e.d_hat, "innovation": e.innovation})
         if rec.tracking is not None:
             t = rec.tracking
             values.update({"setpoint": t.request.x, "setpoint_u": t.request.u, "reference": t.reference.x,

@@ -177,13 +177,15 @@ class RunFolder:
             except OSError:
                 pass
 
-    def finish(self, extra: dict | None = None, limits: RunLimits | None = None, labels: dict | None = None) -> dict:
+    def finish(self, extra: dict | None = None, limits: RunLimits | None = None, labels: dict | None = None,
+               dt: float | None = None) -> dict:
         """Write ``trajectory.npz`` and ``summary.json`` from the recorded steps, with ``extra`` added to
         the summary; returns the summary.
 
         ``limits`` (the planned steps and Jacobi caps) feed the verdict; without them the run is
         judged as planned to the steps it has; ``labels`` name the states and inputs in its
-        messages. RunFolderError if a file cannot be written.
+        messages; ``dt``, the seconds per step if known, gives the setpoints' settling times in
+        seconds. RunFolderError if a file cannot be written.
         """
         self.close()
         arrays = self.columns.arrays()
@@ -193,7 +195,7 @@ class RunFolder:
             raise write_error(exc, self.path / TRAJECTORY) from None
         extra = dict(extra or {})
         summary = summarise(self.system, self.columns.tally, arrays, limits or RunLimits(steps=self.steps),
-                            extra.get("inputs_refused"), labels)
+                            extra.get("inputs_refused"), labels, dt)
         summary.update(extra)
         try:
             write_json(self.path / SUMMARY, summary)
@@ -236,6 +238,9 @@ def _line_fields(rec: StepRecord) -> dict:
         line["r"], line["r_next"] = rec.r, rec.r_next
     if rec.solve_reason is not None:
         line["solve_reason"] = rec.solve_reason
+    if rec.estimate is not None:
+        e = rec.estimate
+        line.update({"y": e.y, "x_hat": e.x_hat, "d_hat": e.d_hat, "innovation": e.innovation})
     if rec.tracking is not None and rec.tracking.active:
         t = rec.tracking
         line.update({"setpoint": t.request.x, "setpoint_u": t.request.u, "reference": t.reference.x,
@@ -288,7 +293,7 @@ def stage_cost(system: CoupledSystem, x: np.ndarray, u: np.ndarray) -> float:
 
 def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays: dict[str, np.ndarray],
               limits: RunLimits | None = None, inputs_refused: dict[str, int] | None = None,
-              labels: dict | None = None) -> dict:
+              labels: dict | None = None, dt: float | None = None) -> dict:
     """The content of summary.json of a run of ``system``, with the run's verdict
     (:mod:`dmpc.records.verdict`) judged against ``limits`` (the planned steps and Jacobi caps;
     None: as planned to the steps it has), and the inputs the plant refused per reason
@@ -296,7 +301,9 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
 
     ``steps`` is the tally of a :class:`~dmpc.records.columns.StepColumns`, or the step records
     themselves (then ``arrays`` may come from :func:`trajectory_arrays`). ``labels`` are the
-    scenario's names of states and inputs for the verdict's messages (:func:`~dmpc.records.verdict.judge`).
+    scenario's names of states and inputs for the verdict's messages (:func:`~dmpc.records.verdict.judge`)
+    and the setpoints' segments; ``dt``, the seconds per step if known, their settling times in
+    seconds (:func:`~dmpc.records.tracking.segments`).
     """
     if not isinstance(steps, StepTally):
         columns = _columns_of(system, steps)
@@ -324,7 +331,8 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
     finite_solve = solve[np.isfinite(solve)]
     step_time = arrays["step_time"][np.isfinite(arrays["step_time"])]
     notes = steps.notes
-    verdict = judge(system, arrays, notes, limits or RunLimits(steps=K), inputs_refused, steps.reasons, labels)
+    limits = limits or RunLimits(steps=K)
+    verdict = judge(system, arrays, notes, limits, inputs_refused, steps.reasons, labels)
     names = [s.name for s in system.subsystems]
     return {
         "verdict": verdict.word,
@@ -352,7 +360,8 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
         "solve_time_median_s": float(np.median(finite_solve)) if finite_solve.size else None,
         "step_time_median_s": float(np.median(step_time)) if step_time.size else None,
         "step_time_p99_s": float(np.percentile(step_time, 99)) if step_time.size else None,
-        **({"tracking": tracked} if (tracked := tracking_summary(system, arrays, labels)) is not None else {}),
+        **({"tracking": tracked} if (tracked := tracking_summary(system, arrays, labels, dt, limits.setpoint_margin))
+           is not None else {}),
         **({"keeps": sum(steps.keeps), "keeps_per_agent": dict(zip(names, steps.keeps)),
             "solve_reasons": dict(sorted(steps.solve_reasons.items()))} if steps.keeps else {}),
     }

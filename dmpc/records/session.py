@@ -18,6 +18,16 @@ from dmpc.scenario import dump_resolved
 from dmpc.terminal.progress import ProgressBar
 
 
+def seconds_per_step(prepared: Prepared) -> float | None:
+    """The seconds one step of the ``prepared`` run stands for: the scenario's ``dt`` (the model's
+    sampling period), else in ``realtime`` mode the period of the steps (``options.dt``); None when
+    neither is known."""
+    scenario = prepared.scenario
+    if scenario is not None and scenario.dt is not None:
+        return float(scenario.dt)
+    return float(prepared.dt) if prepared.mode == "realtime" else None
+
+
 class RunRecorder:
     """Writes scenario.yaml (run.json for a run started from a run bundle) and design.json at
     once, each step as it completes, and the arrays and summary at the end; an interrupted run
@@ -92,9 +102,11 @@ class RunRecorder:
         p = self.prepared.protocol
         limits = RunLimits(steps=p.steps, initial_rounds=p.initial_rounds, rounds=p.rounds,
                            initial_tolerance=p.initial_tolerance, tolerance=p.tolerance,
-                           stopped=str(info.get("failure") or info.get("aborted") or ""))
+                           stopped=str(info.get("failure") or info.get("aborted") or ""),
+                           setpoint_margin=self.prepared.setpoint_margin)
         scenario = self.prepared.scenario
-        self.summary = self.folder.finish(info, limits, named_labels(scenario) if scenario is not None else None)
+        self.summary = self.folder.finish(info, limits, named_labels(scenario) if scenario is not None else None,
+                                          seconds_per_step(self.prepared))
         return self.summary
 
     @property

@@ -168,23 +168,88 @@ def trigger_text(summary: dict) -> str:
 
 
 MAX_TRACKED_ROWS = 8
-"""Requested components listed in the summary table (the rest are in summary.json)."""
+"""Requested components listed in the summary table of a summary without segments (the rest are in summary.json)."""
+MAX_SEGMENT_LINES = 8
+"""Lines of setpoint segments in the summary table: beyond, the last line sums up the rest."""
+LISTED_COMPONENTS = 2
+"""Components of one segment described one by one on its line; more are counted instead."""
+SHOWN_MISSES = 4
+"""Components not reached named on a line that counts them."""
+
+
+def _segment_label(at: int, dt: float | None) -> str:
+    return f"setpoint k = {at}" + (f" (t = {at * dt:g} s)" if dt else "")
+
+
+def _segment_text(entry: dict) -> str:
+    """One segment ``entry`` of ``tracking.segments``: the value asked, and whether it was reached
+    (when, and the error at the segment's end) or not (the error, the tolerance and an unreachable
+    request's target)."""
+    text = f"{entry['subsystem']}: {entry['component']} = {entry['asked']:.6g}"
+    if entry["reached"]:
+        seconds = f" ({entry['settling_s']:.3g} s)" if entry.get("settling_s") is not None else ""
+        return f"{text} reached in {entry['settling_steps']} steps{seconds}, error {entry['error_at_end']:.2g}"
+    unreachable = "" if entry["reachable"] else f"; no admissible steady state, target {entry['target']:.6g}"
+    return f"{text} not reached (error {entry['error_at_end']:.2g}, tolerance {entry['tolerance']:.2g}{unreachable})"
+
+
+def _missed_text(missed: list[dict], with_step: bool = False) -> str:
+    """``not reached: ...`` naming the first ``SHOWN_MISSES`` segments of ``missed`` ('' if none),
+    each with its step ``k`` when ``with_step``."""
+    if not missed:
+        return ""
+    named = ", ".join((f"k = {e['at']} " if with_step else "") + f"{e['subsystem']}: {e['component']} "
+                      f"(error {e['error_at_end']:.2g})" for e in missed[:SHOWN_MISSES])
+    return "; not reached: " + named + (", ..." if len(missed) > SHOWN_MISSES else "")
+
+
+def _counted_text(entries: list[dict], what: str) -> str:
+    """``entries`` counted: how many reached and how fast at most, the largest error at the end,
+    and those not reached (``what``: ``components`` of one segment or ``more segments``)."""
+    reached = [e for e in entries if e["reached"]]
+    text = f"{len(entries)} {what}: {len(reached)} reached"
+    if reached:
+        text += f" in up to {max(e['settling_steps'] for e in reached)} steps"
+        seconds = [e["settling_s"] for e in reached if e.get("settling_s") is not None]
+        if seconds:
+            text += f" ({max(seconds):.3g} s)"
+    text += f", largest |error| {max(abs(e['error_at_end']) for e in entries):.2g}"
+    return text + _missed_text([e for e in entries if not e["reached"]], with_step=what != "components")
 
 
 def tracking_lines(tracking: dict | None) -> list[tuple[str, str]]:
-    """Rows of the summary table for setpoints, from the summary's ``tracking``: per component requested
-    at the end, the value asked and the error from it; and the steps where the reference governor
-    held a target back."""
+    """Rows of the summary table for setpoints, from the summary's ``tracking``: a line per setpoint
+    segment (the components whose request changed at one step; more than ``LISTED_COMPONENTS``
+    counted), the segments beyond ``MAX_SEGMENT_LINES`` summed up in one line that still names
+    those not reached; and the steps where the reference governor held a target back. A summary
+    written before segments existed shows its components requested at the end."""
     if not tracking:
         return []
     rows = []
-    shown = tracking["components"][:MAX_TRACKED_ROWS]
-    for c in shown:
-        rows.append((f"setpoint {c['subsystem']}: {c['component']}",
-                     f"{c['asked']:.6g}, reached {c['final']:.6g} (error {c['error']:.2g})"))
-    more = len(tracking["components"]) - len(shown)
-    if more > 0:
-        rows.append(("setpoints", f"and {more} more components (summary.json, tracking)"))
+    if tracking.get("segments") is None:
+        shown = tracking["components"][:MAX_TRACKED_ROWS]
+        for c in shown:
+            rows.append((f"setpoint {c['subsystem']}: {c['component']}",
+                         f"{c['asked']:.6g}, reached {c['final']:.6g} (error {c['error']:.2g})"))
+        more = len(tracking["components"]) - len(shown)
+        if more > 0:
+            rows.append(("setpoints", f"and {more} more components (summary.json, tracking)"))
+    else:
+        groups: dict[int, list[dict]] = {}
+        for entry in tracking["segments"]:
+            groups.setdefault(entry["at"], []).append(entry)
+        steps = list(groups)
+        shown_steps = steps if len(steps) <= MAX_SEGMENT_LINES else steps[:MAX_SEGMENT_LINES - 1]
+        for at in shown_steps:
+            entries = groups[at]
+            text = ("; ".join(_segment_text(e) for e in entries) if len(entries) <= LISTED_COMPONENTS
+                    else _counted_text(entries, "components"))
+            rows.append((_segment_label(at, tracking.get("dt")), text))
+        rest = steps[len(shown_steps):]
+        if rest:
+            rows.append((f"setpoint k = {rest[0]} ... {rest[-1]}",
+                         _counted_text([e for at in rest for e in groups[at]], "more segments")
+                         + " (summary.json, tracking.segments)"))
     governed = tracking["governor_steps"]
     if governed:
         rows.append(("reference governor", f"held the target back at {len(governed)} step(s) (first k = {governed[0]})"))
@@ -215,7 +280,7 @@ def print_summary(summary: dict, out) -> None:
     table.add_row("closed-loop cost", number_text(summary["closed_loop_cost"]))
     table.add_row("||x(end)||_inf", f"{summary['final_state_norm_inf']:.3g}")
     for line in tracking_lines(summary.get("tracking")):
-        table.add_row(*line)
+        table.add_row(*(Text(cell) for cell in line))  # as written: a unit's [m] is not markup
     if summary.get("solve_time_median_s") is not None:
         table.add_row("QP solve median", f"{summary['solve_time_median_s'] * 1e6:.0f} us")
     if summary.get("step_time_median_s") is not None and summary.get("runtime") != "in-process":

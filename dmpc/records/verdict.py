@@ -15,15 +15,21 @@ kind                      class     when
                                     times the reference size (below)
 ``incomplete``            failure   fewer steps recorded than planned (stopped or interrupted)
 ``fallbacks``             warning   plans missed or lost (expected under injected faults)
-``not-converged``         warning   ||x(end)||_inf > ``CONVERGED_FRACTION`` * ||x(0)||_inf
+``not-converged``         warning   ||x(end)||_inf > ``CONVERGED_FRACTION`` * ||x(0)||_inf (with
+                                    setpoints: see below)
 ``jacobi-cap``            warning   a Jacobi iteration stopped at its cap before its tolerance
 ``inputs-refused``        warning   the plant refused plans whose inputs left U_i
-``setpoint-unreachable``  warning   no admissible steady state meets a requested component: the
-                                    nearest one was tracked (the message names the gap)
+``setpoint-unreachable``  warning   no admissible steady state meets a requested value: the
+                                    nearest one was tracked (the message names the gap); one per
+                                    component and value asked
 ========================  ========  ==============================================================
 
 With setpoints, ``not-converged`` measures the final state from the target applied at the last
-step, and also says when that target had not reached the request's yet.
+step against the largest setpoint step (||x(0) - x_s(0)||_inf and every change of the request's
+target, :func:`setpoint_step`), not against a start that may sit on its target, and also says when
+the target applied had not reached the request's yet. A request's gap counts once it exceeds the
+target solver's accuracy (:func:`dmpc.records.tracking.gap_tolerance`): a request exactly on the
+setpoint margin is met.
 
 The reference size of the divergence test is the larger of ||x(0)||_inf and the largest finite
 state bound, or 1 when both are zero.
@@ -37,13 +43,18 @@ import numpy as np
 from dmpc.core.steps import NO_SEED
 from dmpc.core.system import CoupledSystem, LinearSet
 from dmpc.records.tracking import is_tracked, unreachable
+from dmpc.tracking.targets import DEFAULT_MARGIN
 
 BOUND_TOL = 1e-6
 """A bound counts as broken when it is exceeded by more than BOUND_TOL * max(1, |bound|)."""
 DIVERGENCE_FACTOR = 100.0
 """The state has diverged when its norm exceeds this multiple of the reference size."""
 CONVERGED_FRACTION = 1e-2
-"""The final state is small when ||x(end)||_inf <= this fraction of ||x(0)||_inf."""
+"""The final state is small when ||x(end)||_inf <= this fraction of ||x(0)||_inf (with setpoints:
+||x(end) - x_s||_inf <= this fraction of the largest setpoint step)."""
+CONVERGED_FLOOR = 1e-9
+"""With setpoints, a final state within this times the reference size of its target has converged,
+whatever the steps (a run that starts on its only target)."""
 SHOWN_STEPS = 8
 """Steps listed in a message before ``...``."""
 
@@ -109,6 +120,9 @@ class RunLimits:
         Jacobi tolerances at k = 0 and after.
     stopped : str
         Why the run stopped early, if it did ("" if not known): named in ``incomplete``.
+    setpoint_margin : float
+        The fraction of every bound the setpoint targets keep free (``options.setpoint_margin``):
+        a request on it is reachable.
     """
 
     steps: int
@@ -117,6 +131,7 @@ class RunLimits:
     initial_tolerance: float = 1e-9
     tolerance: float = 1e-9
     stopped: str = ""
+    setpoint_margin: float = DEFAULT_MARGIN
 
 
 def _steps_text(steps: list[int]) -> str:
@@ -276,12 +291,12 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
                                 ", ".join(f"{name}: {count}" for name, count in sorted(refused.items())) + ")",
                                 amount=float(sum(refused.values()))))
     if x.shape[0] and not any(f.kind == "diverged" for f in failures):
-        warnings += _convergence(x, arrays, norms)
+        warnings += _convergence(x, arrays, norms, ref)
     warnings += [Finding("setpoint-unreachable",
                          f"subsystem {g['subsystem']}: {g['component']} = {g['asked']:.6g} asked from k = {g['k']} has "
                          f"no admissible steady state; the nearest, {g['target']:.6g}, is tracked instead "
                          f"(gap {g['gap']:.3g})", g["subsystem"], [g["k"]], abs(g["gap"]))
-                 for g in unreachable(system, arrays, labels)]
+                 for g in unreachable(system, arrays, labels, limits.setpoint_margin)]
     capped = _capped_steps(arrays, limits)
     if capped:
         change = arrays["max_change"]
@@ -292,9 +307,23 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
     return Verdict(failures, warnings)
 
 
-def _convergence(x: np.ndarray, arrays: dict[str, np.ndarray], norms: np.ndarray) -> list[Finding]:
-    """``not-converged``: the final state far from the origin, or with setpoints from the last
-    target applied (and that target short of the request's)."""
+def setpoint_step(x: np.ndarray, arrays: dict[str, np.ndarray]) -> float:
+    """The largest setpoint step of a run with setpoints: ||x(0) - x_s(0)||_inf, x_s the target of
+    the request (``reference``) of step 0, and ||x_s(k) - x_s(k - 1)||_inf at every change of it;
+    ``x`` (K+1, n), ``arrays`` the run's arrays."""
+    reference = arrays["reference"]
+    if not reference.shape[0]:
+        return 0.0
+    step = float(np.max(np.abs(x[0] - reference[0])))
+    if reference.shape[0] > 1:
+        step = max(step, float(np.max(np.abs(np.diff(reference, axis=0)))))
+    return step
+
+
+def _convergence(x: np.ndarray, arrays: dict[str, np.ndarray], norms: np.ndarray, size: float) -> list[Finding]:
+    """``not-converged``: the final state ``x`` far from the origin (``norms``: ||x(k)||_inf), or with
+    setpoints from the last target applied against the largest setpoint step (and that target short
+    of the request's); ``size``: the reference size (:func:`reference_size`)."""
     if not is_tracked(arrays):
         start, end = float(norms[0]), float(norms[-1])
         if end > CONVERGED_FRACTION * start and end > 0:
@@ -302,14 +331,16 @@ def _convergence(x: np.ndarray, arrays: dict[str, np.ndarray], norms: np.ndarray
                                              f"||x(0)||_inf = {start:.3g}", amount=end)]
         return []
     target, reference = arrays["target"][-1], arrays["reference"][-1]
-    start, end = float(np.max(np.abs(x[0] - target))), float(np.max(np.abs(x[-1] - target)))
+    step = setpoint_step(x, arrays)
+    limit = max(CONVERGED_FRACTION * step, CONVERGED_FLOOR * size)
+    end = float(np.max(np.abs(x[-1] - target)))
     found = []
-    if end > CONVERGED_FRACTION * start and end > 0:
+    if end > limit:
         found.append(Finding("not-converged", f"||x(end) - x_s||_inf = {end:.3g} from the last target applied, more "
-                                              f"than {CONVERGED_FRACTION:g} x ||x(0) - x_s||_inf = {start:.3g}",
+                                              f"than {CONVERGED_FRACTION:g} x the largest setpoint step, {step:.3g}",
                              amount=end))
     short = float(np.max(np.abs(reference - target)))
-    if short > CONVERGED_FRACTION * max(float(np.max(np.abs(reference))), 1e-12) and short > 0:
+    if short > limit:
         found.append(Finding("not-converged", f"the target applied at the end is {short:.3g} short of the setpoint's "
                                               f"(the reference governor moved it {arrays['governor'][-1]:.3g} of the "
                                               "way at the last step)", amount=short))

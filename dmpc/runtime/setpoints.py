@@ -132,10 +132,12 @@ def scenario_subsystem(scenario, subsystem: str):
 def send_setpoint(connect: str | Sequence[str], run_id: str, subsystem: str, x: np.ndarray, u: np.ndarray, *,
                   sender: str, tls_dir: str | Path | None = None, timeout: float = DEFAULT_TIMEOUT,
                   request_id: int | None = None) -> SetpointAnswer | None:
-    """Send one setpoint request as a Zenoh client and wait for its answer.
+    """Send one setpoint request as a Zenoh client, as a query, and wait for its answer.
 
-    The answer's subscriber is declared before the request is published, and the request is
-    published once the coordinator's subscriber is seen (or the time is up).
+    The query is sent once the coordinator's queryable is seen, and its reply is the answer. A
+    query that ends without a reply, or no queryable within ``timeout``, is the outcome "not
+    authorised or no run listening" (None): another endpoint or run id, a run that is over, or a
+    certificate that may not send setpoints, whose query the access control ends unanswered.
 
     Parameters
     ----------
@@ -157,7 +159,7 @@ def send_setpoint(connect: str | Sequence[str], run_id: str, subsystem: str, x: 
     Returns
     -------
     SetpointAnswer or None
-        None when no answer came within ``timeout``.
+        None when no answer came: not authorised or no run listening (:data:`UNANSWERED`).
 
     Raises
     ------
@@ -174,35 +176,45 @@ def send_setpoint(connect: str | Sequence[str], run_id: str, subsystem: str, x: 
     deadline = time.monotonic() + timeout
     bus = ZenohBus(_client_config(connect, tls_dir), open_timeout=timeout)
     try:
-        answers: list[SetpointAnswer] = []
-        bus.subscribe(keys.setpoint_answer(message.run, message.sender), _answer_collector(message, answers))
-        key = keys.setpoint(message.run, message.sender)
-        if bus.wait_for_subscribers(key, max(0.0, deadline - time.monotonic())):
-            bus.publish(key, encode(message))
-            bus.run(until=lambda: bool(answers), timeout=max(0.0, deadline - time.monotonic()))
-        return answers[0] if answers else None
+        replies = bus.query(keys.setpoint(message.run, message.sender), encode(message),
+                            max(0.0, deadline - time.monotonic()))
     finally:
         bus.close()
+    answers = [answer for answer in map(_decoded_answer, replies or [])
+               if answer is not None and answer.id == message.id and answer.run == message.run]
+    return answers[0] if answers else None
 
 
-def _answer_collector(message: Setpoint, answers: list[SetpointAnswer]):
-    """A handler that keeps the answer to ``message`` (other ids and garbage are ignored)."""
+UNANSWERED = "not authorised or no run listening"
+"""The outcome of a request that no coordinator answered: the access control ended it unanswered
+(a certificate other than the operator's), or no run listens at that endpoint under that run id."""
 
-    def on_answer(key: str, payload: bytes) -> None:
-        try:
-            answer = decode(payload)
-        except DecodeError:
-            return
-        if isinstance(answer, SetpointAnswer) and answer.id == message.id and answer.run == message.run:
-            answers.append(answer)
 
-    return on_answer
+def unanswered_text(run_id: str, connect: str | Sequence[str], timeout: float) -> str:
+    """What to tell the sender of a request to run ``run_id`` at ``connect`` that got no answer
+    within ``timeout`` seconds."""
+    where = connect if isinstance(connect, str) else ", ".join(connect)
+    return (f"{UNANSWERED}: no answer from the coordinator of run {run_id} at {where} within {timeout:g} s "
+            "(under TLS only the operator certificate may send setpoints; check the endpoint and the run id, "
+            "which dmpc run prints)")
+
+
+def _decoded_answer(payload: bytes) -> SetpointAnswer | None:
+    try:
+        answer = decode(payload)
+    except DecodeError:
+        return None
+    return answer if isinstance(answer, SetpointAnswer) else None
 
 
 def _client_config(connect: str | Sequence[str], tls_dir: str | Path | None):
     endpoints = [connect] if isinstance(connect, str) else list(connect)
     if not endpoints:
         raise SetpointInputError("connect: the coordinator's endpoint is needed, e.g. tcp/127.0.0.1:7447")
+    secure = [endpoint for endpoint in endpoints if endpoint.startswith("tls/")]
+    if secure and tls_dir is None:
+        raise SetpointInputError(f"connect: {secure[0]} is a TLS endpoint: give the certificate directory "
+                                 "with the operator certificate (--tls DIR, tls=DIR)")
     try:
         tls, acl = node_security(tls_dir, keys.OPERATOR_ROLE) if tls_dir is not None else (None, None)
         return session_config(mode="client", connect=endpoints, tls=tls, acl=acl)

@@ -57,7 +57,8 @@ def build_system(scn: Scenario) -> CoupledSystem:
     Returns
     -------
     CoupledSystem
-        Subsystems in file order with ``name`` = the user's id; couplings with 0-based indices
+        Subsystems in file order with ``name`` = the user's id and ``C`` None where the file's C is
+        omitted or the identity; couplings with 0-based indices
         (B = zeros where the file omits it); ``scn.graph`` as extra edges. With
         ``time: continuous``, the matrices discretised with ``dt`` (:func:`discrete_model`).
     """
@@ -93,7 +94,8 @@ def _system_as_written(scn: Scenario) -> CoupledSystem:
     index = {s.name: i for i, s in enumerate(specs)}
     subsystems = tuple(
         Subsystem(name=s.name, A=_array(s.A), B=_array(s.B), Q=_symmetric(s.Q), R=_symmetric(s.R),
-                  x0=_array(s.x0), input_set=_linear_set(s.input), state_set=_linear_set(s.state))
+                  x0=_array(s.x0), input_set=_linear_set(s.input), state_set=_linear_set(s.state),
+                  C=None if s.C is None or s.measures_state else _array(s.C))  # the identity as None: today's runs, bit for bit
         for s in specs)
     couplings = []
     for c in scn.resolved_couplings():
@@ -158,15 +160,38 @@ def revision_bounds(scn: Scenario) -> dict:
 
 def setpoint_entries(scenario: Scenario) -> tuple[SetpointEntry, ...]:
     """The scenario's setpoint schedule as entries on step indices (``at`` in seconds turned into
-    the first step at or after that time when the scenario has dt), NaN for free components."""
+    the first step at or after that time when the scenario has dt), NaN for free components.
+
+    Without ``estimation`` the outputs are the states (C is the identity), so a request of ``y`` is
+    one of ``x`` and every entry has ``y`` None. With it, the requests are on the outputs: every entry
+    has ``y`` (p_i,), a requested state becomes a request of the output that measures it alone (the
+    schema refuses the others), and ``x`` is all NaN.
+    """
     subs = scenario.resolved_subsystems()
     index = {s.name: i for i, s in enumerate(subs)}
     entries = []
     for e, spec in enumerate(scenario.setpoints):
         i = index[spec.subsystem]
+        sub = subs[i]
         path = f"setpoints[{e}]"
         k = int(spec.at) if scenario.dt is None else int(math.ceil(spec.at / scenario.dt - SETPOINT_TIME_TOLERANCE))
-        x = np.array([np.nan if v is None else v for v in setpoint_values(spec, subs[i], "x", path)], float)
-        u = np.array([np.nan if v is None else v for v in setpoint_values(spec, subs[i], "u", path)], float)
-        entries.append(SetpointEntry(max(k, 0), i, x, u))
+        x = _nan_free(setpoint_values(spec, sub, "x", path))
+        u = _nan_free(setpoint_values(spec, sub, "u", path))
+        y = None
+        if spec.y is not None or scenario.estimation is not None:
+            requested = _nan_free(setpoint_values(spec, sub, "y", path))
+            if scenario.estimation is None:  # C is the identity: outputs r are the states r
+                x = np.where(np.isnan(requested), x, requested)
+            else:
+                y = requested
+                for r, j in sub.state_rows().items():  # the output that measures state j alone (rows are independent)
+                    if not np.isnan(x[j]):
+                        y[r] = x[j]
+                x = np.full(sub.n, np.nan)
+        entries.append(SetpointEntry(max(k, 0), i, x, u, y=y))
     return tuple(entries)
+
+
+def _nan_free(values: list[float | None]) -> np.ndarray:
+    """The components of a request as floats, NaN where free (None)."""
+    return np.array([np.nan if v is None else v for v in values], float)

@@ -221,7 +221,9 @@ def _format_loc(loc: tuple) -> str:
 def _join(base: str, rel: str) -> str:
     if not rel:
         return base
-    if not base or rel.startswith("["):
+    if not base:
+        return rel.removeprefix(".")
+    if rel.startswith(("[", ".")):
         return base + rel
     return f"{base}.{rel}"
 

@@ -14,7 +14,7 @@ import math
 import numbers
 import re
 from collections.abc import Sequence
-from typing import Annotated, Literal, Optional, Union
+from typing import Annotated, Literal, Optional, Union, cast
 
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema, model_validator
@@ -22,12 +22,14 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Fiel
 from dmpc.bus.faults import PLANT_PROCESS
 from dmpc.core.errors import DmpcError
 from dmpc.core.steps import DEFAULT_METHOD, Coupling, Method, Mode, Trigger
+from dmpc.estimation.kalman import DISTURBANCE_NOISE, MEASUREMENT_NOISE, STATE_NOISE
+from dmpc.estimation.model import DEFAULT_KIND, KINDS, numerical_rank
 from dmpc.methods import lacks
 
 __all__ = [
     "BoxSpec", "ChainFamily", "CouplingSpec", "DesignSpec", "DiscretisationSpec", "DisturbanceSpec",
-    "FamilyCouplingSpec", "FaultsSpec", "FourTankSpec", "LabelSpec", "LinkFaultSpec", "OptionsSpec", "PlantSpec",
-    "PolytopeSpec",
+    "EstimationSpec", "FamilyCouplingSpec", "FaultsSpec", "FourTankSpec", "LabelSpec", "LinkFaultSpec",
+    "MeasurementNoiseSpec", "NoiseSpec", "OptionsSpec", "PlantSpec", "PolytopeSpec",
     "RevisionBoundSpec", "Scenario", "SpecError",
     "SubsystemSpec", "SubsystemTemplate", "TerminalSpec",
 ]
@@ -390,6 +392,13 @@ class SubsystemTemplate(_Model):
     inputs: Optional[list[LabelSpec]] = Field(
         None, description="Names and units of the inputs, one {name, unit} per input (m_i entries); omitted: "
                           "u1, u2, ...")
+    C: Optional[Matrix] = Field(
+        None, description="What the plant measures, y_i = C x_i: p_i x n_i with independent rows (p_i <= n_i). "
+                          "Omitted: the identity, every state measured (y_i = x_i). Anything else needs "
+                          "'estimation' (the agents then estimate the states they are not given).")
+    outputs: Optional[list[LabelSpec]] = Field(
+        None, description="Names and units of the outputs, one {name, unit} per row of C (p_i entries); omitted: "
+                          "the states' names when C is omitted (or the identity), else y1, y2, ...")
 
     @property
     def n(self) -> int:
@@ -400,6 +409,38 @@ class SubsystemTemplate(_Model):
     def m(self) -> int:
         """Number of inputs m_i."""
         return len(self.B[0])
+
+    @property
+    def p(self) -> int:
+        """Number of measured outputs p_i (n_i when C is omitted)."""
+        return self.n if self.C is None else len(self.C)
+
+    def output_labels(self) -> list[LabelSpec]:
+        """The outputs' names and units: ``outputs``, else the states' (``states``, or x1, x2, ...) when C
+        is omitted or the identity, else y1, y2, ..."""
+        if self.outputs is not None:
+            return list(self.outputs)
+        if self.measures_state:
+            return list(self.states) if self.states is not None else [LabelSpec(name=f"x{j + 1}")
+                                                                       for j in range(self.n)]
+        return [LabelSpec(name=f"y{r + 1}") for r in range(self.p)]
+
+    def state_rows(self) -> dict[int, int]:
+        """The outputs that are a state alone: output row r -> state j where row r of C is the unit vector
+        e_j (every state, r = j, when C is omitted)."""
+        if self.C is None:
+            return {j: j for j in range(self.n)}
+        out = {}
+        for r, row in enumerate(self.C):
+            nonzero = [j for j, v in enumerate(row) if v != 0.0]
+            if len(nonzero) == 1 and row[nonzero[0]] == 1.0:
+                out[r] = nonzero[0]
+        return out
+
+    @property
+    def measures_state(self) -> bool:
+        """True when C is omitted or the identity: the outputs are the states, in order."""
+        return self.C is None or (len(self.C) == self.n and self.state_rows() == {j: j for j in range(self.n)})
 
     @model_validator(mode="after")
     def _consistent(self) -> "SubsystemTemplate":
@@ -427,7 +468,26 @@ class SubsystemTemplate(_Model):
             check_length(self.states, n, "states", f"n = {n} states, from A")
         if self.inputs is not None:
             check_length(self.inputs, m, "inputs", f"m = {m} inputs, from B")
+        if self.C is not None:
+            _check_measurements(self.C, n)
+        if self.outputs is not None:
+            where = f"p = {self.p} outputs, the rows of C" if self.C is not None else \
+                f"p = n = {n} outputs: C is omitted, so every state is measured"
+            check_length(self.outputs, self.p, "outputs", where)
         return self
+
+
+def _check_measurements(C: list[list[float]], n: int) -> None:
+    """C (p x n): n columns, and independent rows (rank p), else SpecError at ``C``."""
+    if len(C[0]) != n:
+        raise SpecError("C", f"expected {n} columns (n = {n} states, from A), got {len(C[0])}")
+    p = len(C)
+    if p > n:
+        raise SpecError("C", f"expected at most {n} rows (independent outputs of n = {n} states), got {p}")
+    rank = numerical_rank(np.asarray(C, dtype=float))
+    if rank < p:
+        raise SpecError("C", f"its {p} rows must be independent, but its rank is {rank}: an output that is zero or a "
+                             "combination of the others measures nothing new; remove it")
 
 
 def _check_set(spec: BoxSpec | PolytopeSpec, dim: int, path: str, what: str) -> None:
@@ -609,6 +669,27 @@ def _per_subsystem(value: object) -> object:
 PerSubsystem = Annotated[Union[float, dict[str, float]], BeforeValidator(_per_subsystem)]
 
 
+def _per_subsystem_vector(value: object) -> object:
+    """A number >= 0, or a map subsystem name -> a list of numbers >= 0."""
+    value = _as_list(value)
+    if not isinstance(value, dict):
+        return _per_subsystem(value)
+    out = {}
+    for key, entries in value.items():
+        try:
+            vec = _vector(entries, allow_inf=False)
+        except SpecError as exc:
+            raise SpecError(f".{key}{exc.path}", exc.message) from None
+        for c, number in enumerate(vec):
+            if number < 0:
+                raise SpecError(f".{key}[{c}]", f"expected a number >= 0, got {number:g}")
+        out[_subsystem_name(key)] = vec
+    return out
+
+
+PerSubsystemVector = Annotated[Union[float, dict[str, list[float]]], BeforeValidator(_per_subsystem_vector)]
+
+
 def _components(value: object) -> object:
     """Setpoint components: a list of numbers and nulls, or a map state name -> number (or null)."""
     value = _as_list(value)
@@ -630,8 +711,8 @@ def _setpoint_time(value: object) -> float:
 
 
 class SetpointSpec(_Model):
-    """One entry of the setpoint schedule: from ``at`` on, subsystem ``subsystem`` asks for ``x``
-    (and ``u``); the latest entry of a subsystem at or before a step holds there."""
+    """One entry of the setpoint schedule: from ``at`` on, subsystem ``subsystem`` asks for ``x`` or
+    ``y`` (and ``u``); the latest entry of a subsystem at or before a step holds there."""
 
     at: Annotated[float, BeforeValidator(_setpoint_time)] = Field(
         description="The step from which the entry holds, or the time in seconds when the scenario has dt (it "
@@ -643,6 +724,10 @@ class SetpointSpec(_Model):
     u: Optional[Components] = Field(
         None, description="Target inputs: m_i entries, null for a free one; or a map input name -> value. "
                           "Omitted: every input free.")
+    y: Optional[Components] = Field(
+        None, description="Target outputs (y_i = C x_i): p_i entries, null for a free one; or a map output name -> "
+                          "value (names from the subsystem's 'outputs'). Omitted: every output free. Give x or y, "
+                          "not both.")
 
 
 class LinkFaultSpec(_Model):
@@ -762,6 +847,73 @@ class FourTankSpec(_Model):
     substeps: PosInt = Field(5, description="Runge-Kutta (RK4) steps per sampling period dt.")
 
 
+def _per_subsystem_kind(value: object) -> object:
+    """A disturbance model (``output`` or ``input``), or a map subsystem name -> one."""
+    if isinstance(value, dict):
+        return {_subsystem_name(key): _kind(v, f".{key}") for key, v in value.items()}
+    return _kind(value, "")
+
+
+def _kind(value: object, path: str) -> str:
+    if value not in KINDS:
+        raise SpecError(path, f"expected one of {', '.join(KINDS)}, got {_show(value)}")
+    return str(value)
+
+
+DisturbanceKinds = Annotated[Union[Literal["output", "input"], dict[str, Literal["output", "input"]]],
+                             BeforeValidator(_per_subsystem_kind)]
+
+
+def _positive_per_subsystem(value: object) -> object:
+    """A number > 0, or a map subsystem name -> number > 0."""
+    out = _per_subsystem(value)
+    numbers: dict[str, float] = out if isinstance(out, dict) else {"": float(cast(float, out))}
+    for key, number in numbers.items():
+        if not number > 0:
+            raise SpecError(f".{key}" if key else "", f"expected a number > 0, got {number:g}")
+    return out
+
+
+PositivePerSubsystem = Annotated[Union[float, dict[str, float]], BeforeValidator(_positive_per_subsystem)]
+
+
+class NoiseSpec(_Model):
+    """The noise weights of the agents' filters (dmpc.estimation.kalman.NoiseWeights): standard
+    deviations as fractions of each quantity's scale, half the width of its bounds (1 where unbounded)."""
+
+    state: PerSubsystem = Field(
+        STATE_NOISE, description="The states' process noise per step, a fraction of each state's scale (>= 0); one "
+                                 f"number, or a map subsystem name -> number (the others {STATE_NOISE:g}).")
+    disturbance: PositivePerSubsystem = Field(
+        DISTURBANCE_NOISE, description="The disturbances' random walk per step, a fraction of their scale (> 0): "
+                                       "larger removes an offset faster; one number or a map by subsystem "
+                                       f"(the others {DISTURBANCE_NOISE:g}).")
+    measurement: PositivePerSubsystem = Field(
+        MEASUREMENT_NOISE, description="The measurement noise, a fraction of each output's scale (> 0): larger "
+                                       "trusts the model more and the sensors less; one number or a map by "
+                                       f"subsystem (the others {MEASUREMENT_NOISE:g}).")
+
+
+class EstimationSpec(_Model):
+    """An observer per agent on the model with integrating disturbances (offset-free tracking)."""
+
+    disturbance: DisturbanceKinds = Field(
+        cast(Literal["output", "input"], DEFAULT_KIND), description="The disturbance model: 'output' (one constant bias per measured output) or "
+                                  "'input' (one constant offset per own input); one for every subsystem, or a map "
+                                  f"subsystem name -> kind (the others '{DEFAULT_KIND}').")
+    noise: NoiseSpec = Field(default_factory=NoiseSpec, description="The filters' noise weights.")
+
+
+class MeasurementNoiseSpec(_Model):
+    """Gaussian noise the plant adds to the outputs it reports, y = C x + v."""
+
+    std: PerSubsystemVector = Field(
+        description="Standard deviations (>= 0): one number for every output, or a map subsystem name -> p_i "
+                    "entries (subsystems not listed: none).")
+    seed: Optional[Annotated[int, Field(strict=True, ge=0)]] = Field(
+        None, description="Seed of the draws (>= 0); null uses the scenario's seed.")
+
+
 class PlantSpec(_Model):
     """What the plant simulates, when it is not the controllers' own model."""
 
@@ -774,6 +926,8 @@ class PlantSpec(_Model):
         None, description="model: fourtank only: the tanks' parameters; omitted: the HD-MPC benchmark's.")
     disturbance: Optional[DisturbanceSpec] = Field(
         None, description="An additive disturbance w(k) on every state update; null for none.")
+    measurement_noise: Optional[MeasurementNoiseSpec] = Field(
+        None, description="Noise on the outputs the plant reports to the agents; null for none.")
 
     @model_validator(mode="after")
     def _fourtank_only(self) -> "PlantSpec":
@@ -820,6 +974,9 @@ class Scenario(_Model):
         default_factory=list, description="The setpoint schedule, piecewise constant: the latest entry of each "
                                           "subsystem at or before a step holds; a subsystem without one keeps the "
                                           "origin as its target.")
+    estimation: Optional[EstimationSpec] = Field(
+        None, description="An observer per agent that estimates the states and constant disturbances from the "
+                          "measured outputs ({} for the defaults); null: the plant reports the whole state.")
 
     def resolved_subsystems(self) -> list[SubsystemSpec]:
         """The subsystems in order, with a family expanded."""
@@ -864,6 +1021,9 @@ class Scenario(_Model):
         _check_loss(self)
         _check_time(self)
         _check_disturbance(self.plant.disturbance, subs, index)
+        _check_measurements_need_estimation(self, subs)
+        _check_estimation(self.estimation, index)
+        _check_measurement_noise(self.plant.measurement_noise, subs, index)
         _check_setpoints(self, subs, index)
         _check_trigger(self, index)
         return self
@@ -1013,17 +1173,18 @@ def _check_disturbance(spec: DisturbanceSpec | None, subs: list[SubsystemSpec], 
 
 
 def setpoint_values(spec: SetpointSpec, sub: SubsystemTemplate, kind: str, path: str) -> list[float | None]:
-    """The components of ``spec.x`` (``kind`` 'x') or ``spec.u`` ('u') in order, None where free.
+    """The components of ``spec.x`` (``kind`` 'x'), ``spec.u`` ('u') or ``spec.y`` ('y') in order, None
+    where free.
 
     Parameters
     ----------
     spec : SetpointSpec
-        The setpoint entry, its ``x`` or ``u`` given as a list, a map of the subsystem's state or
-        input names, or not at all (every component free).
+        The setpoint entry, its ``x``, ``u`` or ``y`` given as a list, a map of the subsystem's state,
+        input or output names, or not at all (every component free).
     sub : SubsystemTemplate
-        The subsystem ``spec`` names: its n_i, m_i and state and input labels.
-    kind : {"x", "u"}
-        Which of the two to read.
+        The subsystem ``spec`` names: its n_i, m_i, p_i and the labels of its states, inputs and outputs.
+    kind : {"x", "u", "y"}
+        Which of the three to read.
     path : str
         Where ``spec`` is written (e.g. ``"setpoints[0]"``), for the SpecError of a list of the
         wrong length or an unknown name.
@@ -1031,29 +1192,35 @@ def setpoint_values(spec: SetpointSpec, sub: SubsystemTemplate, kind: str, path:
     Returns
     -------
     list of float or None
-        n_i entries for ``"x"``, m_i for ``"u"``.
+        n_i entries for ``"x"``, m_i for ``"u"``, p_i for ``"y"``.
     """
-    given = spec.x if kind == "x" else spec.u
-    size = sub.n if kind == "x" else sub.m
+    given = {"x": spec.x, "u": spec.u, "y": spec.y}[kind]
+    size = {"x": sub.n, "u": sub.m, "y": sub.p}[kind]
     if given is None:
         return [None] * size
+    noun = {"x": "state", "u": "input", "y": "output"}[kind]
     if isinstance(given, list):
-        what = f"n_i = {size} states" if kind == "x" else f"m_i = {size} inputs"
+        what = {"x": "n_i", "u": "m_i", "y": "p_i"}[kind]
         if len(given) != size:
-            raise SpecError(f"{path}.{kind}", f"expected {size} entries ({what} of subsystem '{spec.subsystem}'), "
-                                              f"got {len(given)}")
+            raise SpecError(f"{path}.{kind}", f"expected {size} entries ({what} = {size} {noun}s of subsystem "
+                                              f"'{spec.subsystem}'), got {len(given)}")
         return list(given)
-    labels = sub.states if kind == "x" else sub.inputs
+    labels = sub.output_labels() if kind == "y" else (sub.states if kind == "x" else sub.inputs)
     if not labels:
-        raise SpecError(f"{path}.{kind}", f"names need the subsystem's '{'states' if kind == 'x' else 'inputs'}' "
+        raise SpecError(f"{path}.{kind}", f"names need the subsystem's '{noun}s' "
                                           f"(subsystem '{spec.subsystem}' names none): give a list instead")
     names = [label.name for label in labels]
     for key in given:
         if key not in names:
-            raise SpecError(f"{path}.{kind}.{key}", f"subsystem '{spec.subsystem}' has no "
-                                                    f"{'state' if kind == 'x' else 'input'} '{key}' "
+            raise SpecError(f"{path}.{kind}.{key}", f"subsystem '{spec.subsystem}' has no {noun} '{key}' "
                                                     f"(it has {', '.join(names)})")
     return [given.get(name) for name in names]
+
+
+def _component_path(spec: SetpointSpec, kind: str, names: list[str], c: int) -> str:
+    """Where component ``c`` of ``spec.<kind>`` is written: ``.x.h1`` for a map, ``.x[0]`` for a list."""
+    given = {"x": spec.x, "u": spec.u, "y": spec.y}[kind]
+    return f".{kind}.{names[c]}" if isinstance(given, dict) else f".{kind}[{c}]"
 
 
 def _check_setpoints(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
@@ -1068,7 +1235,10 @@ def _check_setpoints(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, 
         if scn.dt is None and spec.at != int(spec.at):
             raise SpecError(f"{path}.at", f"expected a whole step, got {spec.at:g} (the scenario has no dt, so 'at' "
                                           "counts steps)")
+        if spec.x is not None and spec.y is not None:
+            raise SpecError(f"{path}.y", "give either x (states) or y (outputs), not both")
         sub = subs[index[spec.subsystem]]
+        subpath = scn.subsystem_path(index[spec.subsystem])
         for kind, set_spec, set_path in (("x", sub.state, "state"), ("u", sub.input, "input")):
             values = setpoint_values(spec, sub, kind, path)
             if not isinstance(set_spec, BoxSpec):
@@ -1080,8 +1250,76 @@ def _check_setpoints(scn: Scenario, subs: list[SubsystemSpec], index: dict[str, 
                     label = f" ({name[c].label})" if name else ""
                     raise SpecError(where, f"the target {value:g}{label} of subsystem '{spec.subsystem}' is outside "
                                            f"{'X_i' if kind == 'x' else 'U_i'} [{set_spec.lower[c]:g}, "
-                                           f"{set_spec.upper[c]:g}] ({scn.subsystem_path(index[spec.subsystem])}."
-                                           f"{set_path})")
+                                           f"{set_spec.upper[c]:g}] ({subpath}.{set_path})")
+        _check_output_setpoint(spec, sub, path, subpath)
+        if scn.estimation is not None:
+            _check_measured(spec, sub, path, subpath)
+
+
+def _check_output_setpoint(spec: SetpointSpec, sub: SubsystemTemplate, path: str, subpath: str) -> None:
+    """The requested outputs that are a state alone (a row e_j of C) within that state's box."""
+    values = setpoint_values(spec, sub, "y", path)
+    if spec.y is None or not isinstance(sub.state, BoxSpec):
+        return
+    outputs = sub.output_labels()
+    for r, j in sub.state_rows().items():
+        value = values[r]
+        lo, hi = sub.state.lower[j], sub.state.upper[j]
+        if value is not None and not lo <= value <= hi:
+            state = sub.states[j].label if sub.states else f"x{j + 1}"
+            raise SpecError(path + _component_path(spec, "y", [o.name for o in outputs], r),
+                            f"the target {value:g} of output {outputs[r].label} of subsystem '{spec.subsystem}' is "
+                            f"outside X_i [{lo:g}, {hi:g}] (it measures the state {state}; {subpath}.state)")
+
+
+def _check_measured(spec: SetpointSpec, sub: SubsystemTemplate, path: str, subpath: str) -> None:
+    """With estimation, a requested state must be an output on its own (a row e_j of C): it is then
+    tracked as that output; any other state request is refused."""
+    if spec.x is None:
+        return
+    measured = set(sub.state_rows().values())
+    names = [label.name for label in sub.states] if sub.states else [f"x{j + 1}" for j in range(sub.n)]
+    for j, value in enumerate(setpoint_values(spec, sub, "x", path)):
+        if value is not None and j not in measured:
+            outputs = ", ".join(label.name for label in sub.output_labels())
+            raise SpecError(path + _component_path(spec, "x", names, j),
+                            f"with estimation, setpoints name measured outputs (y) or inputs (u): state {names[j]} "
+                            f"of subsystem '{spec.subsystem}' is not measured on its own (no row of {subpath}.C picks "
+                            f"it alone), so its steady state depends on the disturbance estimate; request an output "
+                            f"instead (y: {{name: value}}, outputs {outputs}), or measure {names[j]} (a row of "
+                            f"{subpath}.C)")
+
+
+def _check_measurements_need_estimation(scn: Scenario, subs: list[SubsystemSpec]) -> None:
+    if scn.estimation is not None:
+        return
+    for i, sub in enumerate(subs):
+        if not sub.measures_state:
+            raise SpecError(f"{scn.subsystem_path(i)}.C", "measures only some of the states (C is not the identity), "
+                                                          "so the agents need an observer for the others: add "
+                                                          "'estimation' (estimation: {} for the defaults), or omit C to "
+                                                          "measure every state")
+
+
+def _check_estimation(spec: EstimationSpec | None, index: dict[str, int]) -> None:
+    if spec is None:
+        return
+    maps = [("estimation.disturbance", spec.disturbance)]
+    maps += [(f"estimation.noise.{field}", getattr(spec.noise, field)) for field in NoiseSpec.model_fields]
+    for where, value in maps:
+        for name in (value if isinstance(value, dict) else {}):
+            _check_name(name, index, f"{where}.{name}")
+
+
+def _check_measurement_noise(spec: MeasurementNoiseSpec | None, subs: list[SubsystemSpec],
+                             index: dict[str, int]) -> None:
+    if spec is None or not isinstance(spec.std, dict):
+        return
+    for name, vec in spec.std.items():
+        path = f"plant.measurement_noise.std.{name}"
+        _check_name(name, index, path)
+        p = subs[index[name]].p
+        check_length(vec, p, path, f"p = {p} outputs of subsystem '{name}'")
 
 
 def _check_trigger(scn: Scenario, index: dict[str, int]) -> None:

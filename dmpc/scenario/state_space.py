@@ -10,10 +10,13 @@ names them itself), and its time base the scenario's:
 - ``dt > 0`` (discrete time): ``time: discrete`` and ``dt`` set to it;
 - ``dt = True`` (discrete, period not given): ``time: discrete``.
 
-Every system of one scenario must have the same time base. C is not used (dmpc measures the
-whole state), and a non-zero D is refused rather than dropped. python-control itself is never
-imported: the objects are recognised by their type's module and attributes, so dmpc and its
-agents run without it.
+Every system of one scenario must have the same time base. A subsystem's C is its measurement
+matrix when the scenario has ``estimation`` (unless the entry gives ``C`` itself, and left out when
+it is the identity), with its output labels as the names of the outputs (unless they are
+python-control's defaults ``y[i]``, or the entry gives ``outputs``); without ``estimation`` dmpc
+measures the whole state and C is not used. A non-zero D is refused rather than dropped.
+python-control itself is never imported: the objects are recognised by their type's module and
+attributes, so dmpc and its agents run without it.
 """
 from __future__ import annotations
 
@@ -27,7 +30,8 @@ from dmpc.scenario.load import ScenarioError
 
 SYSTEM = "system"
 """The key of an entry that takes a python-control model in place of A and B."""
-_DEFAULT_LABEL = {"states": re.compile(r"x\[\d+\]"), "inputs": re.compile(r"u\[\d+\]")}
+_DEFAULT_LABEL = {"states": re.compile(r"x\[\d+\]"), "inputs": re.compile(r"u\[\d+\]"),
+                  "outputs": re.compile(r"y\[\d+\]")}
 
 
 def from_state_spaces(data: Mapping) -> dict:
@@ -52,9 +56,10 @@ def from_state_spaces(data: Mapping) -> dict:
     """
     out = dict(data)
     bases: list[tuple[str, TimeBase]] = []  # (path, dt) of every system, in the order found
+    measured = out.get("estimation") is not None  # C is used only with an observer
     for path, entry, labelled, put in _entries(out):
         if isinstance(entry, Mapping) and SYSTEM in entry:
-            put(_expanded(entry, path, labelled, bases))
+            put(_expanded(entry, path, labelled, bases, measured))
     if bases:
         _set_time_base(out, bases)
     return out
@@ -87,8 +92,10 @@ def is_state_space(value: object) -> bool:
     return kind.__module__.split(".")[0] == "control" and all(hasattr(value, a) for a in ("A", "B", "C", "D", "dt"))
 
 
-def _expanded(entry: Mapping, path: str, labelled: bool, bases: list[tuple[str, TimeBase]]) -> dict:
-    """``entry`` with its ``system`` replaced by A, B (and labels); its time base appended to ``bases``."""
+def _expanded(entry: Mapping, path: str, labelled: bool, bases: list[tuple[str, TimeBase]],
+              measured: bool = False) -> dict:
+    """``entry`` with its ``system`` replaced by A, B (and labels; and C with its output labels when
+    ``measured``, for a subsystem); its time base appended to ``bases``."""
     where = f"{path}.{SYSTEM}"
     sys = entry[SYSTEM]
     if not is_state_space(sys):
@@ -103,9 +110,9 @@ def _expanded(entry: Mapping, path: str, labelled: bool, bases: list[tuple[str, 
     D = np.asarray(sys.D, dtype=float)
     if D.size and np.any(D != 0):
         raise ScenarioError(f"{where}: D is not zero (largest |D| entry {np.abs(D).max():g}): dmpc's model is "
-                            "x(k+1) = A x + B u with the whole state measured, so C and D are not used, and a "
-                            "feedthrough would be lost; pass control.ss(sys.A, sys.B, sys.C, 0) if the outputs do "
-                            "not matter here", field=where)
+                            "x(k+1) = A x + B u with outputs y = C x (the whole state without 'estimation'), so D is "
+                            "not used, and a feedthrough would be lost; pass control.ss(sys.A, sys.B, sys.C, 0) if "
+                            "the feedthrough does not matter here", field=where)
     out = {key: value for key, value in entry.items() if key != SYSTEM}
     out["A"], out["B"] = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
     if labelled:
@@ -113,8 +120,22 @@ def _expanded(entry: Mapping, path: str, labelled: bool, bases: list[tuple[str, 
             names = list(labels or [])
             if key not in out and names and not all(_DEFAULT_LABEL[key].fullmatch(n) for n in names):
                 out[key] = [{"name": str(n)} for n in names]
+        if measured:
+            _measurements(sys, out)
     bases.append((where, _time_base(sys.dt, where)))
     return out
+
+
+def _measurements(sys: Any, out: dict) -> None:
+    """Put the system's C (unless the identity) and its output labels (unless python-control's
+    defaults) into the subsystem entry ``out``, where the entry does not give them itself."""
+    C = np.asarray(sys.C, dtype=float)
+    identity = C.shape == (out["A"].shape[0],) * 2 and np.array_equal(C, np.eye(C.shape[0]))
+    if "C" not in out and not identity:
+        out["C"] = C
+    names = list(getattr(sys, "output_labels", None) or [])
+    if "outputs" not in out and names and not all(_DEFAULT_LABEL["outputs"].fullmatch(n) for n in names):
+        out["outputs"] = [{"name": str(n)} for n in names]
 
 
 TimeBase = float | Literal[True]

@@ -9,20 +9,25 @@ agent-I        plan/I, kept/I, ready/I;               release, plan/J for J in N
                token alive/agent-I                    alive/*
 coordinator    release, control, inputs, telemetry/*,  plan/*, kept/*, ready/*, state/*, setpoint/*,
                setpoint-answer/*;                     alive/*
-               token alive/coordinator
+               token alive/coordinator;
+               queryable setpoint/* and its replies
                (relays as a router: plan/*, alive/*)
 plant          state/plant; token alive/plant         inputs, control, alive/*
 sensor-I       state/sensor-I; token alive/sensor-I   inputs, control, alive/*
 router         relays: everything under dmpc/R/**     everything under dmpc/R/**
 observer       nothing                                telemetry/*, alive/* (``dmpc watch``)
-operator       setpoint/*                             setpoint-answer/*, alive/* (``dmpc setpoint``)
+operator       setpoint/* (a put or a query)          setpoint-answer/*, alive/* (``dmpc setpoint``)
 =============  =====================================  ==========================================
 
 Subjects are bound to certificate common names (the roles of ``dmpc.security.certs``), the
 default is deny, and the rules hold on ingress: a node filters what its links bring in, which
 is the direction an honest node controls. Egress rules let each node hand a role only what
 that role may subscribe to, and the declarations it needs to see. Denied messages vanish
-silently (Zenoh reports nothing to the sender).
+silently (Zenoh reports nothing to the sender of a put; a denied query ends without a reply).
+
+Every role sees the coordinator's queryable on ``setpoint/*`` (a declaration), but only an
+operator's query gets through: any other role's ends at once without a reply, which ``dmpc
+setpoint`` reports as "not authorised or no run listening".
 """
 from __future__ import annotations
 
@@ -33,9 +38,9 @@ from pathlib import Path
 from dmpc.bus import keys
 
 ACL_FILE = "acl.json"
-# everything the protocol sends; queries and queryables are not used and stay denied
-_DECLARES = ["declare_subscriber", "liveliness_token", "declare_liveliness_subscriber"]
-_ALL = ["put", "delete", "liveliness_query", *_DECLARES]
+# everything the protocol sends; the one queryable is the coordinator's, for setpoint requests
+_DECLARES = ["declare_subscriber", "declare_queryable", "liveliness_token", "declare_liveliness_subscriber"]
+_ALL = ["put", "delete", "query", "reply", "liveliness_query", *_DECLARES]
 
 
 def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict:
@@ -67,7 +72,8 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     alive_all = keys.alive_prefix(R)
     rules, subjects, policies = [], [], []
 
-    def role(name: str, puts: list[str], subs: list[str], tokens: list[str], receives: list[str]) -> None:
+    def role(name: str, puts: list[str], subs: list[str], tokens: list[str], receives: list[str],
+             more: Sequence[str] = ()) -> None:
         rid = name
         rules.extend([
             _rule(f"{rid} put", "ingress", ["put"], puts),
@@ -78,7 +84,7 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
         ])
         subjects.append({"id": rid, "cert_common_names": [name]})
         policies.append({"id": rid, "rules": [f"{rid} put", f"{rid} subscribe", f"{rid} token", f"{rid} watch",
-                                              f"{rid} receive", "declarations"], "subjects": [rid]})
+                                              f"{rid} receive", "declarations", *more], "subjects": [rid]})
 
     rules.append(_rule("declarations", "egress", _DECLARES + ["liveliness_query"], [root]))
     # In the star topology the coordinator's session is the agents' router: it forwards their
@@ -87,10 +93,14 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
     states = keys.state_prefix(R)
     setpoints, answers = keys.setpoint_prefix(R), keys.setpoint_answer(R, "*")
     kept = keys.kept(R, "*")
+    # the coordinator answers setpoint requests sent as queries: its queryable and its replies come in
+    # from it, and an operator's queries go out to it
+    rules.extend([_rule("coordinator answers", "ingress", ["declare_queryable", "reply"], [setpoints]),
+                  _rule("coordinator asked", "egress", ["query"], [setpoints])])
     role(keys.COORDINATOR_ROLE, [keys.release(R), keys.control(R), keys.inputs(R), keys.plan(R, "*"), kept,
                                  keys.telemetry_prefix(R), answers],
          [keys.plan(R, "*"), kept, keys.ready(R, "*"), states, setpoints], [alive_all],
-         [keys.plan(R, "*"), kept, keys.ready(R, "*"), states, setpoints])
+         [keys.plan(R, "*"), kept, keys.ready(R, "*"), states, setpoints], ["coordinator answers", "coordinator asked"])
     # the plant, or one sensor per subsystem, may publish its own state and nothing else
     for source in keys.state_sources(names):
         subs = [keys.inputs(R), keys.control(R)]
@@ -110,14 +120,15 @@ def access_control(names: Sequence[str], neighbours: Mapping[str, Sequence[str]]
                                                  "declarations"], "subjects": ["observer"]})
     # an operator (a supervisory program) may request setpoints and hear the answers, nothing else;
     # any sender name under its certificate: it names the program, the certificate the role
-    rules.extend([_rule("operator put", "ingress", ["put"], [setpoints]),
+    rules.extend([_rule("operator put", "ingress", ["put", "query"], [setpoints]),
                   _rule("operator subscribe", "ingress", ["declare_subscriber"], [answers]),
                   _rule("operator watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
                         [alive_all]),
-                  _rule("operator receive", "egress", ["put"], [answers])])
+                  _rule("operator receive", "egress", ["put"], [answers]),
+                  _rule("operator replies", "egress", ["reply"], [setpoints])])
     subjects.append({"id": keys.OPERATOR_ROLE, "cert_common_names": [keys.OPERATOR_ROLE]})
     policies.append({"id": keys.OPERATOR_ROLE, "rules": ["operator put", "operator subscribe", "operator watch",
-                                                         "operator receive", "declarations"],
+                                                         "operator receive", "operator replies", "declarations"],
                      "subjects": [keys.OPERATOR_ROLE]})
     rules.extend([_rule("relay in", "ingress", _ALL, [root]), _rule("relay out", "egress", _ALL, [root])])
     subjects.append({"id": "router", "cert_common_names": ["router"]})

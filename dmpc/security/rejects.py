@@ -22,9 +22,10 @@ STALE = "stale"
 """Why the coordinator drops a plan of a closed round, or a copy of a state already taken: normal
 (a plan after its round's deadline in realtime, a state the plant repeats), so not counted."""
 LOG_INTERVAL = 1.0
-MAX_REASON = 60
-"""Characters of a reason counted in ``Rejections.reasons``."""
+MAX_REASON = 80
+"""Characters of a reason counted in ``Rejections.reasons``: a longer one is cut between words."""
 _FIELDS = frozenset(f.name for cls in MESSAGE_TYPES.values() for f in dataclasses.fields(cls))
+_MESSAGE_CLASSES = frozenset(cls.__name__ for cls in MESSAGE_TYPES.values())  # a message's fields: Setpoint: missing field 'u'
 _INDEXED_FIELD = re.compile(r"[a-z_]+\[[^\]]*\]")  # x[1], u[2], provided[a]: one entry of a field
 _DETAIL = re.compile(r", got |;| \(")  # what follows is the value the sender sent, or more detail
 
@@ -32,11 +33,24 @@ _DETAIL = re.compile(r", got |;| \(")  # what follows is the value the sender se
 def reason_of(why: str) -> str:
     """The reason under which a drop said ``why`` is counted: the text before the first colon, except
     that a field of a message (``x[1]``, ``k``) keeps what is wrong with it (``x[1]: non-finite
-    values``, ``k: expected an integer >= 0``) without the value the sender sent."""
+    values``, ``k: expected an integer >= 0``) without the value the sender sent, and a message with
+    fields missing or unexpected names them (``Setpoint: unexpected field 'colour'``). At most
+    ``MAX_REASON`` characters, cut between words (``...`` says so)."""
     head, colon, rest = why.partition(":")
     if colon and (head in _FIELDS or _INDEXED_FIELD.fullmatch(head)):
         head = f"{head}: {_DETAIL.split(rest.strip(), maxsplit=1)[0].strip()}"
-    return head[:MAX_REASON]
+    elif colon and head in _MESSAGE_CLASSES:
+        head = f"{head}: {rest.strip()}"
+    return _cut(head, MAX_REASON)
+
+
+def _cut(text: str, limit: int) -> str:
+    """``text`` if at most ``limit`` characters, else its words that fit before ``...``."""
+    if len(text) <= limit:
+        return text
+    room = limit - len("...")
+    space = text.rfind(" ", 0, room + 1)
+    return text[: space if space > 0 else room].rstrip(" ,;:") + "..."
 
 
 class Rejections:

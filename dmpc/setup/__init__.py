@@ -20,6 +20,7 @@ from dmpc.scenario import (
     setpoint_entries,
 )
 from dmpc.scenario.schema import per_subsystem
+from dmpc.setup.estimation import design_estimation
 from dmpc.setup.plant import disturbance_bounds, plant_setup
 from dmpc.setup.start import MethodStart
 
@@ -76,8 +77,10 @@ def protocol_options(scenario: Scenario, steps: int | None = None) -> ProtocolOp
 
 def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | None = None) -> Prepared:
     """Build the system and the design; ``steps`` overrides the scenario's; ``design_data``
-    (``design.json`` content) skips the offline solves."""
+    (``design.json`` content) skips the offline solves (the estimator of ``estimation`` is designed
+    again: it is quick, and deterministic)."""
     system = build_system(scenario)
+    estimator = design_estimation(scenario, system)  # first: a detectability error is quicker to find than the design
     protocol = protocol_options(scenario, steps)
     plant = plant_setup(scenario, system, protocol.steps)
     design = design_for(scenario, system, design_data, protocol, disturbance_bounds(plant, system))
@@ -86,11 +89,12 @@ def prepare(scenario: Scenario, steps: int | None = None, design_data: dict | No
     if deadline is None and opts.mode == "realtime":
         deadline = opts.dt
     trigger = trigger_options(scenario)
-    return Prepared(scenario=scenario, system=system, design=design, digest=design_digest(design, opts.method, trigger),
+    digest = design_digest(design, opts.method, trigger, estimator)
+    return Prepared(scenario=scenario, system=system, design=design, digest=digest,
                     protocol=protocol, mode=opts.mode, dt=opts.dt, deadline=deadline, faults=fault_plan(scenario),
                     name=scenario.name, coupling=opts.coupling, method=opts.method, plant=plant,
                     model=_model_report(scenario), setpoints=setpoint_entries(scenario),
-                    setpoint_margin=opts.setpoint_margin, trigger=trigger)
+                    setpoint_margin=opts.setpoint_margin, trigger=trigger, estimator=estimator)
 
 
 def trigger_options(scenario: Scenario) -> TriggerOptions:

@@ -22,10 +22,12 @@ from dmpc.plant.fourtank import FourTank, FourTankPlant
 from dmpc.prepared import PlantFunction, PlantSetup, Prepared
 from dmpc.scenario import Scenario, ScenarioError, discrete_model
 from dmpc.scenario.schema import FourTankSpec, fourtank_positions
+from dmpc.setup.estimation import measurement_noise
 
 
 def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantSetup:
-    """The scenario's ``plant`` section for a run of ``system`` of ``steps`` steps.
+    """The scenario's ``plant`` section (the model, the disturbance, the measurement noise) for a run
+    of ``system`` of ``steps`` steps.
 
     Raises
     ------
@@ -49,7 +51,8 @@ def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantS
         elif kind == "file":
             bound = DisturbanceSequence(w).bound()
     return PlantSetup(model=spec.model, A=A, B=B, disturbance=w, disturbance_kind=kind, disturbance_bound=bound,
-                      function=function, function_name=function_name)
+                      function=function, function_name=function_name,
+                      measurement_noise=measurement_noise(scenario, system))
 
 
 FOURTANK_NAME = "dmpc.plant.fourtank:FourTankPlant"

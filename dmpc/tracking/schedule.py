@@ -17,7 +17,7 @@ from dmpc.tracking.targets import Request
 
 @dataclass(frozen=True, eq=False)
 class SetpointEntry:
-    """From step ``at`` on, subsystem ``index`` asks for ``x`` and ``u`` (NaN: free).
+    """From step ``at`` on, subsystem ``index`` asks for ``x`` (or ``y``) and ``u`` (NaN: free).
 
     Attributes
     ----------
@@ -29,6 +29,10 @@ class SetpointEntry:
     u : ndarray, shape (m_i,)
     source : str
         Where it came from: ``scenario`` or the sender of a live request.
+    y : ndarray, shape (p_i,), or None
+        The requested outputs y_i = C_i x_i (NaN: free), for a run with an observer (scenario
+        ``estimation``), whose requests name outputs: ``x`` is then all NaN. None without one, where
+        the outputs are the states and a request is in ``x``.
     """
 
     at: int
@@ -36,6 +40,7 @@ class SetpointEntry:
     x: np.ndarray
     u: np.ndarray
     source: str = "scenario"
+    y: np.ndarray | None = None
 
 
 class Schedule:

@@ -52,6 +52,12 @@ MET_TOLERANCE = 1e-7
 PIN_TOLERANCE = 1e-9
 """How far (relative) the second stage may move a component the first stage settled."""
 
+SOLVER_TOLERANCE = 1e-10
+"""Clarabel's tolerances in the steady-state QPs (duality gap, absolute and relative, and feasibility).
+The nearest admissible target minimises a weighted squared distance to the request, settled to
+SOLVER_TOLERANCE times max(1, the objective's size): a request on the margin is met to about its
+square root (dmpc.records.tracking.gap_tolerance)."""
+
 
 class TargetError(ValueError):
     """A request that cannot be read (wrong length, non-finite value, unknown component)."""
@@ -245,6 +251,17 @@ class TargetSpace:
         gap = np.where(pinned, w - np.where(pinned, wanted, 0.0), np.nan)
         return Target(x, u, self.scale(x, u), gap[: self.n], gap[self.n:], reachable)
 
+    def load(self) -> None:
+        """Load the solvers and build the steady-state QPs' matrices now: what the first target would
+        do (tens of milliseconds for the imports alone), done ahead of it."""
+        import clarabel  # noqa: F401 - loaded here, ahead of the first target
+        import scipy.sparse.linalg  # noqa: F401 - the projection onto the steady states
+
+        _ = self._steady, self._inside, self._weights
+        pinned = np.zeros(self.n + self.m, dtype=bool)
+        pinned[0] = True
+        self._solve(pinned, np.zeros(self.n + self.m), exact=True)  # the solver's first solve, at the origin
+
     def _onto_steady_states(self, w: np.ndarray) -> np.ndarray:
         """w = [x, u] (n + m,) moved by the least amount onto x = A x + B u exactly: an interior-point
         solution meets the equality only to its tolerance, and the controllers treat the target as an
@@ -298,7 +315,7 @@ class TargetSpace:
         b = np.concatenate(rhs)
         settings = clarabel.DefaultSettings()
         settings.verbose = False
-        settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = 1e-10
+        settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = SOLVER_TOLERANCE
         solver = clarabel.DefaultSolver(P, q, A, b, cones, settings)
         result = solver.solve()
         status = str(result.status)

@@ -8,10 +8,14 @@ origin, the target the design and its start check were made for; the governor mo
 at the end of step 0.
 
 Pure: no bus, no clock. Targets of requests seen before are kept (a request costs one QP the
-first time it is seen, nothing after).
+first time it is seen, nothing after). The targets of the scenario's schedule are computed when the
+tracker is built, before the run; a request that arrives while the run goes on can have its targets
+computed elsewhere first (:meth:`Tracker.unknown` names them, :meth:`Tracker.learn` keeps them), so
+that no step waits for a QP.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -85,6 +89,7 @@ class Tracker:
         """What a step tracks while nothing was ever requested (one object for every such step)."""
         self._targets: dict[bytes, tuple[Request, Target]] = {}
         self.unreachable: dict[bytes, tuple[int, Request, Target]] = {}  # first step each was asked at
+        self.learn((request, self.space.target(request)) for request in self.unknown())
 
     @property
     def active(self) -> bool:
@@ -95,15 +100,39 @@ class Tracker:
         """A request ``entry`` that arrived while the run goes on (its ``at`` is a step not yet decided)."""
         self.schedule = self.schedule.with_entry(entry)
 
+    def unknown(self, entries: Sequence[SetpointEntry] = ()) -> list[Request]:
+        """The requests whose targets are not known yet that the schedule, with ``entries`` added in
+        their order, makes from the first of their steps on (without entries: from step 0 on): at
+        that step and at every later step where an entry takes effect; each once, none that asks
+        for nothing (the origin)."""
+        schedule = self.schedule
+        for entry in entries:
+            schedule = schedule.with_entry(entry)
+        start = min((entry.at for entry in entries), default=0)
+        found: dict[bytes, Request] = {}
+        for k in [start] + [c for c in schedule.change_steps() if c > start]:
+            request = schedule.request(k)
+            key = _key(request)
+            if key not in self._targets and key not in found and not request.is_free:
+                found[key] = request
+        return list(found.values())
+
+    def learn(self, known: Iterable[tuple[Request, Target]]) -> None:
+        """Keep the targets ``known`` (request, its target), computed beforehand by
+        :meth:`TargetSpace.target <dmpc.tracking.targets.TargetSpace.target>`: the steps that need
+        them take them from here."""
+        for request, target in known:
+            self._targets.setdefault(_key(request), (request, target))
+
     def reference(self, k: int) -> tuple[Request, Target]:
-        """The request that holds at step k and its target."""
+        """The request that holds at step k and its target (computed now if it is not known yet)."""
         request = self.schedule.request(k)
-        key = request.x.tobytes() + request.u.tobytes()
+        key = _key(request)
         known = self._targets.get(key)
         if known is None:
             known = self._targets[key] = (request, self.space.target(request))
-            if not known[1].reachable:
-                self.unreachable.setdefault(key, (k, request, known[1]))
+        if not known[1].reachable:
+            self.unreachable.setdefault(key, (k, request, known[1]))
         return known
 
     def step(self, k: int) -> TrackingStep:
@@ -119,3 +148,8 @@ class Tracker:
         decided = self.governor.step(eta, self.applied, reference)
         self.applied, self.theta = decided.target, decided.theta
         return self.applied
+
+
+def _key(request: Request) -> bytes:
+    """The bytes that tell requests apart (NaN, free, included)."""
+    return request.x.tobytes() + request.u.tobytes()

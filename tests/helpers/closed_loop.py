@@ -120,3 +120,17 @@ def statuses(steps: list[dict]) -> set[str]:
 def fallback_steps(steps: list[dict]) -> list[tuple[int, list[str]]]:
     """(k, reasons) of every step with a fallback."""
     return [(step["k"], step["fallback_reason"]) for step in steps if any(step["fallback"])]
+
+
+def recorded_iterates(folder: Path, names) -> tuple[np.ndarray, np.ndarray]:
+    """The plans every step recorded, stacked over the subsystems (``trajectory.npz``'s
+    ``plan_z_<name>``, ``plan_v_<name>``): z (K, N+1, n) and v (K, N, m), plant coordinates. For
+    ``tv-box-coop`` they are the step's last iterate."""
+    arrays = np.load(Path(folder) / "trajectory.npz")
+    return (np.concatenate([arrays[f"plan_z_{name}"] for name in names], axis=2),
+            np.concatenate([arrays[f"plan_v_{name}"] for name in names], axis=2))
+
+
+def plan_cost(z: np.ndarray, v: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> float:
+    """sum_{t<N} z(t)'Q z(t) + v(t)'R v(t) + z(N)'P z(N), term by term (deviation coordinates)."""
+    return sum(float(z[t] @ Q @ z[t] + v[t] @ R @ v[t]) for t in range(v.shape[0])) + float(z[-1] @ P @ z[-1])
