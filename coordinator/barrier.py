@@ -52,6 +52,7 @@ from dmpc.coordinator.actions import (
 from dmpc.coordinator.candidates import Candidates
 from dmpc.coordinator.combiner import AnotherRound, ClosedRound, JacobiRounds, RoundCombiner
 from dmpc.coordinator.cooperative_rounds import CooperativeCombiner
+from dmpc.coordinator.estimation import Estimate, Estimation
 from dmpc.coordinator.guard import AnswerGuard
 from dmpc.coordinator.open_step import OpenStep
 from dmpc.coordinator.refusals import INPUT_REFUSED, INPUT_TOLERANCE, InputRefusals
@@ -111,6 +112,10 @@ class Coordinator:
         (:class:`~dmpc.coordinator.cooperative_rounds.CooperativeCombiner`).
     cooperative_step : {"line", "equal"}
         How a cooperative round's proposals combine (``options.cooperative_step``).
+    estimation : Estimation, optional
+        With the scenario's ``estimation``: the plant's outputs y = C x (+ noise) update the
+        observer at every step, and the controllers work from its estimate x^ instead of x; the
+        disturbance estimate moves the setpoint targets (docs/algorithm.md, "Offset-free tracking").
 
     Attributes
     ----------
@@ -125,7 +130,7 @@ class Coordinator:
     def __init__(self, system: CoupledSystem, design: ControllerDesign, plant: Plant | None, options: ProtocolOptions,
                  run_id: str, policy: TerminalPolicy | None = None, clock: Callable[[], float] | None = None,
                  tracker: Tracker | None = None, triggered: bool = False, cooperative: bool = False,
-                 cooperative_step: StepRule = DEFAULT_STEP_RULE) -> None:
+                 cooperative_step: StepRule = DEFAULT_STEP_RULE, estimation: Estimation | None = None) -> None:
         self.system = system
         self.design = design
         self.plant = plant
@@ -138,6 +143,8 @@ class Coordinator:
         self.triggered = triggered
         self._clock = clock
         self._x = np.array(system.x0, dtype=float)  # the measured state, with a plant outside (until start)
+        self._estimation = estimation
+        self._estimate: Estimate | None = None  # the open step's, with estimation
         self.terminal = self.policy.initial(self.x)
         self.finished = False
         self.last_plan: list[Plan | None] = [None] * system.M
@@ -168,7 +175,15 @@ class Coordinator:
 
     @property
     def x(self) -> np.ndarray:
-        """The measured state x(k), shape (n,)."""
+        """The state x(k) the controllers work from, shape (n,): the measured state, or with
+        estimation the estimate x^(k)."""
+        if self._estimate is not None:
+            return self._estimate.x_hat
+        return self.measured
+
+    @property
+    def measured(self) -> np.ndarray:
+        """The plant's state x(k) as the simulated plant has it or the plant outside reported it, shape (n,)."""
         return self.plant.x if self.plant is not None else self._x
 
     @property
@@ -208,6 +223,10 @@ class Coordinator:
                 raise ValueError("a coordinator with a plant outside starts from the measured x(0)")
             self._x = np.array(x0, dtype=float)
             self.terminal = self.policy.initial(self._x)
+            self._step.note = self.terminal.note
+        if self._estimation is not None:
+            self._estimate = self._estimation.update(0, None, self._estimation.measure(0, self.measured))
+            self.terminal = self.policy.initial(self.x)
             self._step.note = self.terminal.note
         self._combiner.step_started(self._step, self.x, self.terminal)
         return self._release_round()
@@ -378,8 +397,12 @@ class Coordinator:
     def _finalise_step(self, max_change: Callable[[], float]) -> list[Action]:
         """Close the step: every agent's input and terminal state decide the next terminal sets and
         (with a simulated plant) x(k+1). ``max_change`` gives the last round's plan change."""
+        estimate = self._estimate
         pending = self._closer.close(self._step, self.x.copy(), self.terminal, self.last_plan, self._barrier.lost,
-                                     max_change, self._combiner.agent_steps(self._step, self._barrier.lost))
+                                     max_change, self._combiner.agent_steps(self._step, self._barrier.lost),
+                                     None if estimate is None else estimate.d_hat)
+        if estimate is not None:  # the record holds the plant's state, and what the controllers saw of it
+            pending = replace(pending, x=self.measured.copy(), estimate=estimate)
         for i, part in enumerate(pending.agents):
             if part.plan is not None:
                 self.last_plan[i] = part.plan
@@ -399,6 +422,9 @@ class Coordinator:
             self.finished = True
             actions.append(RunFinished("finished"))
             return actions
-        self._combiner.step_started(self._step, x_next, self.terminal)
+        if self._estimation is not None:
+            y = self._estimation.measure(self._step.k, x_next)
+            self._estimate = self._estimation.update(self._step.k, pending.u, y)
+        self._combiner.step_started(self._step, self.x, self.terminal)
         actions.extend(self._release_round())
         return actions

@@ -59,13 +59,13 @@ class Estimation:
         self.last: Estimate | None = None
 
     def measure(self, k: int, x: np.ndarray) -> np.ndarray:
-        """The outputs y(k) = C x(k) (+ v(k)) of the plant's state x (n,), shape (p,)."""
+        """The outputs y(k) = C x(k) (+ v(k)) of step ``k`` from the plant's state ``x`` (n,), shape (p,)."""
         y = np.asarray(self._C @ x, dtype=float)
         return y + self.noise(k) if self.noise is not None else y
 
     def update(self, k: int, u_previous: np.ndarray | None, y: np.ndarray) -> Estimate:
-        """The estimate of step ``k`` from the inputs of step k - 1 (m,) (None at k = 0) and the
-        outputs y(k) (p,)."""
+        """The estimate of step ``k`` from ``u_previous``, the inputs of step k - 1 (m,) (None at
+        k = 0), and the outputs ``y`` = y(k) (p,)."""
         x_hat, d_hat = self.observer.update(u_previous, y)
         self.last = Estimate(np.array(y, dtype=float), np.array(x_hat, dtype=float), np.array(d_hat, dtype=float),
                              float(np.max(np.abs(self.observer.innovation), initial=0.0)))

@@ -8,9 +8,11 @@ from dataclasses import dataclass
 
 from dmpc.bus.interface import Bus
 from dmpc.coordinator.barrier import Coordinator
+from dmpc.coordinator.estimation import Estimation
 from dmpc.coordinator.node import CoordinatorNode, RunObserver
 from dmpc.coordinator.target_worker import TargetWorker
 from dmpc.core.steps import StepRecord
+from dmpc.estimation.targets import OffsetFreeTargets
 from dmpc.methods import method_spec, terminal_policy
 from dmpc.methods.policy import BoxPolicy
 from dmpc.plant.dynamics import Plant
@@ -63,15 +65,18 @@ def coordinator_node(prepared: Prepared, bus: Bus, run_id: str, on_step: Callabl
         simulated plant.
     """
     policy = terminal_policy(prepared.method, prepared.system, prepared.design)
+    estimator = prepared.estimator
     tracker = None
     if prepared.tracks:
         assert isinstance(policy, BoxPolicy)
+        outputs = None if estimator is None else OffsetFreeTargets(estimator.model, prepared.setpoint_margin)
         tracker = Tracker(prepared.system, prepared.design.terminal, policy.closed_loop,
-                          prepared.design.gains.K_global(), prepared.setpoints, prepared.setpoint_margin)
+                          prepared.design.gains.K_global(), prepared.setpoints, prepared.setpoint_margin, outputs)
+    estimation = None if estimator is None else Estimation(estimator, prepared.plant.measurement_noise)
     coordinator = Coordinator(prepared.system, prepared.design, plant, prepared.protocol, run_id, policy=policy,
                               clock=bus.now, tracker=tracker, triggered=prepared.trigger.event,
                               cooperative=method_spec(prepared.method).cooperative,
-                              cooperative_step=prepared.protocol.cooperative_step)
+                              cooperative_step=prepared.protocol.cooperative_step, estimation=estimation)
     # a live request's targets are computed beside the run where a thread can hand them back (not on
     # the in-memory bus, whose time is simulated: there a request is taken as it arrives)
     targets = TargetWorker(tracker.space, bus) if tracker is not None and bus.call_later_threadsafe else None

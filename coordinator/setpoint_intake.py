@@ -78,8 +78,15 @@ class SetpointIntake:
         """The schedule's entry of the request ``msg`` (checked by :meth:`problem`) from step ``at``."""
         i = self.index[msg.subsystem]
         sub = self.system.subsystems[i]
-        return SetpointEntry(at=at, index=i, x=_request_part(msg.x, sub.n), u=_request_part(msg.u, sub.m),
-                             source=msg.sender)
+        x, u = _request_part(msg.x, sub.n), _request_part(msg.u, sub.m)
+        if self.tracker is not None and self.tracker.outputs is not None:
+            # with estimation a request names outputs: each requested state is an output of its own
+            # (checked by problem())
+            y = np.full(sub.p, np.nan)
+            for c in np.flatnonzero(~np.isnan(x)):
+                y[_output_of(sub.output_matrix, int(c))] = x[c]
+            return SetpointEntry(at=at, index=i, x=np.full(sub.n, np.nan), u=u, source=msg.sender, y=y)
+        return SetpointEntry(at=at, index=i, x=x, u=u, source=msg.sender)
 
     def needs(self, msgs: Sequence[Setpoint], first_undecided: int,
               finished: bool) -> tuple[list[SetpointAnswer | None], list[Request]]:
@@ -152,18 +159,36 @@ class SetpointIntake:
             shown = ", ".join(self.names[:8]) + (", ..." if len(self.names) > 8 else "")
             return f"unknown subsystem '{msg.subsystem}' (known: {shown})"
         sub = self.system.subsystems[i]
-        return (_component_problem(np.asarray(msg.x, dtype=float), "x", sub.n, sub.state_set, msg.subsystem)
-                or _component_problem(np.asarray(msg.u, dtype=float), "u", sub.m, sub.input_set, msg.subsystem))
+        problem = (_component_problem(np.asarray(msg.x, dtype=float), "x", sub.n, sub.state_set, msg.subsystem)
+                   or _component_problem(np.asarray(msg.u, dtype=float), "u", sub.m, sub.input_set, msg.subsystem))
+        if problem is None and self.tracker.outputs is not None:
+            x = _request_part(np.asarray(msg.x, dtype=float), sub.n)
+            if not np.isnan(np.asarray(msg.u, dtype=float)).all():
+                return "u: this run estimates its state (estimation): a request names measured states only"
+            for c in np.flatnonzero(~np.isnan(x)):
+                if _output_of(sub.output_matrix, int(c)) < 0:
+                    return (f"x[{c}]: this run estimates its state (estimation), and state {c} of subsystem "
+                            f"'{msg.subsystem}' is not measured on its own: a request names measured states only")
+        return problem
 
-    def close_step(self, k: int, eta: np.ndarray) -> tuple[TrackingStep | None, Target]:
+    def close_step(self, k: int, eta: np.ndarray,
+                   disturbance: np.ndarray | None = None) -> tuple[TrackingStep | None, Target]:
         """What step k tracked and the target of step k + 1, from the terminal states eta (n,) of
-        step k's plans: (None, the origin) without a tracker; (the tracker's idle step, the origin)
-        while nothing was ever requested."""
+        step k's plans (and with estimation the ``disturbance`` estimate (n_d,)): (None, the origin)
+        without a tracker; (the tracker's idle step, the origin) while nothing was ever requested."""
         if self.tracker is None:
             return None, self.origin
         if not self.tracker.active:
             return self.tracker.idle, self.origin
-        return self.tracker.step(k), self.tracker.advance(k + 1, eta)
+        return self.tracker.step(k), self.tracker.advance(k + 1, eta, disturbance)
+
+
+def _output_of(C: np.ndarray, c: int) -> int:
+    """The row of ``C`` (p_i, n_i) that measures state ``c`` alone (a unit row), or -1."""
+    unit = np.zeros(C.shape[1])
+    unit[c] = 1.0
+    rows = np.flatnonzero((C == unit).all(axis=1))
+    return int(rows[0]) if rows.size else -1
 
 
 def _request_part(values: np.ndarray, size: int) -> np.ndarray:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -103,6 +104,8 @@ class PendingStep:
         What the step tracked.
     triggered : bool
         An event trigger: the record says why each agent solved.
+    estimate : Estimate or None
+        With estimation: the outputs measured and the estimates the step was controlled from.
     """
 
     k: int
@@ -119,6 +122,7 @@ class PendingStep:
     target: Target  # the target of the next step
     tracking: TrackingStep | None = None
     triggered: bool = False  # an event trigger: the record says why each agent solved
+    estimate: Any = None  # with estimation: what the controllers saw (dmpc.coordinator.estimation.Estimate)
 
     def record(self, x_next: np.ndarray, step_time: float, system: CoupledSystem) -> StepRecord:
         """The step's record, with ``x_next`` = x(k+1) (n,), ``step_time`` the step's wall time (s)
@@ -133,7 +137,7 @@ class PendingStep:
             qp_iterations=[a.qp_iterations for a in agents], plans_z=[a.z for a in agents],
             plans_v=[a.v for a in agents], latency=[a.latency for a in agents], note=self.note, r=self.r,
             r_next=nxt.r, x_next=x_next, step_time=step_time, tracking=self.tracking,
-            solve_reason=[a.solved_because for a in agents] if self.triggered else None)
+            solve_reason=[a.solved_because for a in agents] if self.triggered else None, estimate=self.estimate)
 
 
 class StepCloser:
@@ -164,7 +168,8 @@ class StepCloser:
         self.triggered = triggered
 
     def close(self, step: OpenStep, x: np.ndarray, terminal: TerminalState, last_plan: Sequence[Plan | None],
-              lost: set[int], max_change: Callable[[], float], agents: list[AgentStep] | None = None) -> PendingStep:
+              lost: set[int], max_change: Callable[[], float], agents: list[AgentStep] | None = None,
+              disturbance: np.ndarray | None = None) -> PendingStep:
         """Close ``step``: every agent's input and terminal state decide the next terminal sets and
         the next target.
 
@@ -184,13 +189,15 @@ class StepCloser:
         agents : list of AgentStep, optional
             The agents' parts as the round combiner made them (the cooperative iterate's); by
             default each agent's plan of the step, or its fallback (:meth:`agent_step`).
+        disturbance : ndarray, shape (n_d,), optional
+            With estimation, the disturbance estimate the next step's target is computed from.
         """
         if agents is None:
             x_parts = self.system.split_state(x)
             agents = [self.agent_step(i, x_parts[i], step, terminal, last_plan[i], lost) for i in range(self.system.M)]
         u = np.concatenate([a.u for a in agents])
         eta = np.concatenate([a.eta for a in agents])
-        tracking, target = self.setpoints.close_step(step.k, eta)
+        tracking, target = self.setpoints.close_step(step.k, eta, disturbance)
         # the next step's terminal set is around its target (docs/algorithm.md, "Setpoints")
         nxt = self.policy.update(terminal, eta - target.x, target.scale)
         return PendingStep(k=step.k, x=x, u=u, alpha=terminal.alpha.copy(), beta=terminal.beta, rounds=step.round + 1,

@@ -185,10 +185,10 @@ def _is_reason(comment: str) -> bool:
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("dmpc.core", "dmpc.terminal"),  # the numerical core; what the terminal shows and the exit codes
-    ("dmpc.offline", "dmpc.bus"),  # offline design, transport
-    ("dmpc.methods", "dmpc.tracking", "dmpc.estimation", "dmpc.security"),  # the methods' terminal sets; setpoint
-    # targets and the reference governor; offset-free estimation and its targets; TLS, access control, checks of
-    # what arrives
+    ("dmpc.offline", "dmpc.bus", "dmpc.estimation"),  # offline design, transport; offset-free estimation and
+    # its targets (the setpoint targets build on them)
+    ("dmpc.methods", "dmpc.tracking", "dmpc.security"),  # the methods' terminal sets; setpoint targets and the
+    # reference governor; TLS, access control, checks of what arrives
     ("dmpc.cooperative",),  # the cooperative method's iterate and agent QPs (around setpoint targets)
     ("dmpc.scenario",),  # scenario files
     ("dmpc.prepared",),  # a prepared run: what every role is built from

@@ -69,12 +69,15 @@ class Schedule:
         system = self.system
         x = np.full(system.n, np.nan)
         u = np.full(system.m, np.nan)
+        y = np.full(system.p, np.nan) if any(entry.y is not None for entry in self.entries) else None
         for entry in self.entries:
             if entry.at > k:
                 break
             x[system.xs(entry.index)] = entry.x
             u[system.us(entry.index)] = entry.u
-        return Request(x, u)
+            if y is not None and entry.y is not None:
+                y[system.ys(entry.index)] = entry.y
+        return Request(x, u, y)
 
     def change_steps(self) -> list[int]:
         """The steps at which an entry takes effect, sorted, without repeats."""

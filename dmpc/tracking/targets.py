@@ -71,10 +71,14 @@ class Request:
     ----------
     x : ndarray, shape (n,)
     u : ndarray, shape (m,)
+    y : ndarray, shape (p,), or None
+        Requested outputs, with estimation (docs/algorithm.md, "Offset-free tracking"): ``x`` is
+        then all free. None without.
     """
 
     x: np.ndarray
     u: np.ndarray
+    y: np.ndarray | None = None
 
     @classmethod
     def free(cls, n: int, m: int) -> "Request":
@@ -83,11 +87,15 @@ class Request:
 
     @property
     def is_free(self) -> bool:
-        return bool(np.isnan(self.x).all() and np.isnan(self.u).all())
+        return bool(np.isnan(self.x).all() and np.isnan(self.u).all()
+                    and (self.y is None or np.isnan(self.y).all()))
 
     def same_as(self, other: "Request") -> bool:
         """Whether ``other`` asks for the same setpoint (NaN entries, "free", count as equal)."""
-        return np.array_equal(self.x, other.x, equal_nan=True) and np.array_equal(self.u, other.u, equal_nan=True)
+        same_y = (self.y is None and other.y is None) or (
+            self.y is not None and other.y is not None and np.array_equal(self.y, other.y, equal_nan=True))
+        return same_y and np.array_equal(self.x, other.x, equal_nan=True) and np.array_equal(self.u, other.u,
+                                                                                            equal_nan=True)
 
 
 @dataclass(frozen=True, eq=False)

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dmpc.core.system import CoupledSystem
+from dmpc.estimation.targets import OffsetFreeTargets
 from dmpc.offline.terminal_set import TerminalSet
 from dmpc.tracking.governor import ReferenceGovernor
 from dmpc.tracking.schedule import Schedule, SetpointEntry
@@ -73,12 +74,19 @@ class Tracker:
         The scenario's schedule.
     margin : float
         Targets keep this fraction of every bound free (:class:`TargetSpace`).
+    outputs : OffsetFreeTargets, optional
+        With estimation: the targets of requests on outputs, steady states of the model with the
+        disturbance estimate (docs/algorithm.md, "Offset-free tracking"), recomputed at every step
+        from the estimate of :meth:`advance` (a back-substitution, no QP while the target keeps
+        its bounds).
     """
 
     def __init__(self, system: CoupledSystem, terminal: TerminalSet, closed_loop: np.ndarray | sp.spmatrix,
                  gain: np.ndarray | sp.spmatrix, entries: tuple[SetpointEntry, ...] = (),
-                 margin: float = DEFAULT_MARGIN) -> None:
+                 margin: float = DEFAULT_MARGIN, outputs: OffsetFreeTargets | None = None) -> None:
         self.system = system
+        self.outputs = outputs
+        self.disturbance: np.ndarray | None = None  # the latest disturbance estimate (with outputs)
         self.space = TargetSpace(system, margin)
         self.governor = ReferenceGovernor(self.space, terminal, closed_loop, gain)
         self.schedule = Schedule(system, entries)
@@ -89,7 +97,12 @@ class Tracker:
         """What a step tracks while nothing was ever requested (one object for every such step)."""
         self._targets: dict[bytes, tuple[Request, Target]] = {}
         self.unreachable: dict[bytes, tuple[int, Request, Target]] = {}  # first step each was asked at
-        self.learn((request, self.space.target(request)) for request in self.unknown())
+        if outputs is None:
+            self.learn((request, self.space.target(request)) for request in self.unknown())
+        else:  # every pattern of the schedule factored now, before the run
+            for request in self.unknown():
+                if request.y is not None:
+                    outputs.pattern(~np.isnan(request.y))
 
     @property
     def active(self) -> bool:
@@ -125,8 +138,11 @@ class Tracker:
             self._targets.setdefault(_key(request), (request, target))
 
     def reference(self, k: int) -> tuple[Request, Target]:
-        """The request that holds at step k and its target (computed now if it is not known yet)."""
+        """The request that holds at step k and its target (computed now if it is not known yet;
+        a request on outputs: from the latest disturbance estimate)."""
         request = self.schedule.request(k)
+        if request.y is not None and self.outputs is not None and not request.is_free:
+            return request, self._output_target(request)
         key = _key(request)
         known = self._targets.get(key)
         if known is None:
@@ -142,14 +158,35 @@ class Tracker:
         request, reference = self.reference(k)
         return TrackingStep(request, reference, self.applied, self.theta)
 
-    def advance(self, k: int, eta: np.ndarray) -> Target:
-        """Decide the target of step ``k`` from the terminal states eta (n,) of step k - 1's plans."""
+    def advance(self, k: int, eta: np.ndarray, disturbance: np.ndarray | None = None) -> Target:
+        """Decide the target of step ``k`` from the terminal states eta (n,) of step k - 1's plans
+        (and, with estimation, the disturbance estimate (n_d,) the next step starts from)."""
+        if disturbance is not None:
+            self.disturbance = disturbance
         _, reference = self.reference(k)
         decided = self.governor.step(eta, self.applied, reference)
         self.applied, self.theta = decided.target, decided.theta
         return self.applied
 
 
+    def _output_target(self, request: Request) -> Target:
+        """The target of a request on outputs for the latest disturbance estimate: the affine map's
+        while it keeps the bounds (with the margin), else the steady-state QP's; where none keeps
+        them, the target applied now (the request is then unreachable as asked)."""
+        assert self.outputs is not None and request.y is not None
+        d_hat = self.disturbance if self.disturbance is not None else np.zeros(self.outputs.model.nd)
+        found = self.outputs.target(request.y, d_hat)
+        reachable = found.inside
+        if not reachable:
+            bounded = self.outputs.bounded(request.y, d_hat)
+            if bounded is None:
+                return self.applied
+            found = bounded
+        n, m = self.system.n, self.system.m
+        return Target(found.x, found.u, self.space.scale(found.x, found.u), np.full(n, np.nan), np.full(m, np.nan),
+                      reachable)
+
+
 def _key(request: Request) -> bytes:
     """The bytes that tell requests apart (NaN, free, included)."""
-    return request.x.tobytes() + request.u.tobytes()
+    return request.x.tobytes() + request.u.tobytes() + (b"" if request.y is None else b"y" + request.y.tobytes())
