@@ -62,8 +62,10 @@ def design(scenario: ScenarioLike) -> Design:
     dmpc.design.DesignError
         The design cannot work (e.g. an infeasible start at the given horizon).
     """
+    from dmpc.setup.coupling_check import design_with_coupling  # start-up time: only a design needs it
+
     prepared = _prepared(scenario)
-    return Design.from_json(prepared.design_json(), prepared.names)
+    return Design.from_json(design_with_coupling(prepared), prepared.names)
 
 
 @contextlib.contextmanager

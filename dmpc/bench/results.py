@@ -485,7 +485,8 @@ def cooperative_lines(measured: dict) -> list[str]:
              "would take minutes; on the chain every release of a run has that size), times the rounds per step; "
              "it is published once and every agent process receives a copy. kB / step: the releases and the plan "
              "messages of a step from k = 1, each payload counted once. QP solve median: `summary.json`, every "
-             "agent and step. QP iterations: OSQP's, from k = 1, median and largest over every agent and step. "
+             "agent and step, a solve's wall time in its process (as processes, shared with every other process "
+             "on the machine's cores while the agents of a round solve at once). QP iterations: OSQP's, from k = 1, median and largest over every agent and step. "
              "Speed figure: this machine's just before the pair (ms for 10^6 Python additions)."]
     if measured.get("inprocess"):
         lines += ["", "### In this process", "",

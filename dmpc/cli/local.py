@@ -65,12 +65,12 @@ def design(scenario: ScenarioArg, set_: SetOpt = None,
            as_json: Annotated[bool, typer.Option("--json", help="Print design.json instead of the report.")] = False) -> None:
     """Run the offline design (gains, terminal set, tubes) and report it."""
     from dmpc.cli.coupling import coupling_text  # start-up time: the check loads the scenario schema (pydantic)
-    from dmpc.setup.coupling_check import design_coupling  # start-up time: as above
+    from dmpc.setup.coupling_check import design_coupling, design_with_coupling  # start-up time: as above
 
     prepared = prepare_scenario(scenario, set_)
     coupling = design_coupling(prepared)
     if as_json:
-        print(json.dumps({**prepared.design_json(), "input_coupling": coupling.to_json(prepared.names)}, indent=2))
+        print(json.dumps(design_with_coupling(prepared, coupling), indent=2))
     else:
         from dmpc.records.tables import design_report  # start-up time: tables only where printed
 

@@ -24,18 +24,19 @@ import numpy as np
 from dmpc.core.mpc_qp import POLISH_RETRY_REFINE_ITER, MpcQP, QPSolution, StageRows
 from dmpc.core.system import CoupledSystem, block_diag, stack_sets
 
-COOPERATIVE_SETTINGS = dict(eps_prim_inf=1e-9, eps_dual_inf=1e-9, polish_refine_iter=POLISH_RETRY_REFINE_ITER,
-                            max_iter=50_000)
+COOPERATIVE_SETTINGS = dict(eps_prim_inf=1e-9, eps_dual_inf=1e-9, polish_refine_iter=POLISH_RETRY_REFINE_ITER)
 """OSQP's infeasibility tolerances, tighter than its defaults (1e-4): an agent's feasible set can
 be thin (the iterate on the boundary of a row shared with another subsystem), and a certificate
 accepted at 1e-4 then calls a feasible problem infeasible. And the polished solution refined to
 convergence: with the default 3 steps a polish that OSQP reports as successful can leave
 dynamics residuals of ~5e-8, so the states the proposed inputs really give (the coordinator
 simulates them) missed a row by up to 4e-7 on about 1 % of random coupled systems
-(tests/test_cooperative_core.py); with 25 steps by 1e-14. And five times OSQP's iteration cap
-of the other methods' QPs: a small, well-conditioned agent QP needed 17,760 iterations on one random
-system in a thousand (a proposal that stops at the cap is no proposal: the agent keeps its inputs);
-the cap bounds the worst round's solve time, which the deadline of a real-time run must allow."""
+(tests/test_cooperative_core.py); with 25 steps by 1e-14. A solve that OSQP ends at its
+iteration cap (one small, well-conditioned agent QP in a thousand needed 17,760 iterations; on a
+random input-coupled system with a setpoint an agent's QP hit the cap at a dozen steps) or solves
+only inaccurately is solved again by Clarabel, an interior-point method, on the same matrices
+(:class:`dmpc.core.mpc_qp.MpcQP`, ``interior_point``): a proposal that fails is no proposal, and
+the agent's inputs stay at the iterate."""
 
 
 class CooperativeQP:
@@ -75,7 +76,7 @@ class CooperativeQP:
         opts = dict(COOPERATIVE_SETTINGS)
         opts.update(settings or {})
         self._A, self._B = A, B
-        self._qp = MpcQP(A, B, Q, own.R, P_R, horizon, inputs, states, np.eye(self.n), opts)
+        self._qp = MpcQP(A, B, Q, own.R, P_R, horizon, inputs, states, np.eye(self.n), opts, interior_point=True)
 
     def coupling(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         """c(t) for t = 0..N-1, shape (N, n_R), from the iterate's states of R, z (N+1, n_R), and

@@ -108,7 +108,11 @@ class CooperativeRounds:
         T, lower, upper = terminal_rows
         qp = CentralQP(self.system, self._P_global, self.N, terminal="rows", rows=T, settings=FIRST_SETTINGS)
         qp.set_target(target.x, target.u)
-        sol = qp.solve_rows(x - target.x, lower, upper)
+        # to 1e-10: the agents' QPs hold every row of the iterate, and a first iterate that leaves one
+        # by OSQP's 1e-7 can make an agent's problem infeasible at the tolerances its solvers keep
+        sol = qp.solve_rows_accurately(x - target.x, lower, upper)
+        if not sol.status.feasible:
+            sol = qp.solve_rows(x - target.x, lower, upper)
         if not sol.status.feasible:
             return FirstIterate(rollout.moved(target.x, target.u),
                                 f"k=0: the terminal controller's rollout leaves the constraints (by {excess:.3g}) and "

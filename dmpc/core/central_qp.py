@@ -88,6 +88,12 @@ class CentralQP:
         self._qp.set_offset(x_s, u_s)
         return self._qp.solve(x - x_s, None, np.full(self._rows, -np.inf), np.full(self._rows, float(scale)))
 
+    def solve_rows_accurately(self, x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> QPSolution:
+        """:meth:`solve_rows` by the interior-point method, to 1e-10 (:meth:`MpcQP.solve_accurately
+        <dmpc.core.mpc_qp.MpcQP.solve_accurately>`): from x (n,) with the terminal rows' bounds
+        ``lower``, ``upper`` (r,)."""
+        return self._qp.solve_accurately(x, None, lower, upper)
+
     def solve_rows(self, x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> QPSolution:
         """Solve from x (n,) with the terminal rows' bounds ``lower``, ``upper``, each shape (r,)."""
         return self._qp.solve(x, None, lower, upper)

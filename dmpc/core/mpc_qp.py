@@ -133,11 +133,16 @@ class MpcQP:
         T in the terminal rows.
     settings : dict, optional
         OSQP settings overriding DEFAULT_SETTINGS.
+    interior_point : bool
+        A solve that OSQP ends at its iteration cap, or solves only inaccurately, is solved again
+        by an interior-point method (Clarabel) on the same matrices and bounds: ADMM can crawl on
+        degenerate problems (many active rows, a thin feasible set) that an interior-point method
+        settles in a few dozen iterations. Off by default (the paper's QPs never needed it).
     """
 
     def __init__(self, A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray, horizon: int,
                  inputs: StageRows, states: StageRows | None, terminal: np.ndarray,
-                 settings: dict[str, Any] | None = None) -> None:
+                 settings: dict[str, Any] | None = None, interior_point: bool = False) -> None:
         n, m, N = B.shape[0], B.shape[1], horizon
         self.n, self.m, self.N = n, m, N
         self._Q, self._R, self._P = Q, R, P
@@ -173,6 +178,8 @@ class MpcQP:
         opts = dict(DEFAULT_SETTINGS)
         opts.update(settings or {})
         self._rows = sp.vstack(blocks, format="csc")
+        self._interior_point = interior_point
+        self._hessian = 2.0 * sp.triu(cost, format="csc")
         self._solver = osqp.OSQP()
         self._solver.setup(P=2.0 * sp.triu(cost, format="csc"), q=np.zeros(nz + nv),
                            A=self._rows, l=self._l, u=self._u, **opts)
@@ -215,18 +222,8 @@ class MpcQP:
         of the last solve); otherwise it starts from the last solution."""
         n, nz = self.n, self._nz
         l, u = self._l, self._u
-        np.negative(x, out=l[:n])
-        if coupling is None:
-            l[n:nz] = 0.0
-        else:
-            np.negative(coupling.reshape(-1), out=l[n:nz])
-        u[:nz] = l[:nz]
-        # clipped to +-OSQP_INFTY (np.clip's values, without its dispatch: this runs every step)
-        lower_f, upper_f = l[self._terminal], u[self._terminal]
-        np.minimum(np.maximum(terminal_lower, -OSQP_INFTY, out=lower_f), OSQP_INFTY, out=lower_f)
-        np.minimum(np.maximum(terminal_upper, -OSQP_INFTY, out=upper_f), OSQP_INFTY, out=upper_f)
         N = self.N
-        if (lower_f > upper_f).any():
+        if not self._set_bounds(x, coupling, terminal_lower, terminal_upper):
             # an empty terminal set (e.g. beta below the tube margin): OSQP would reject the
             # update and silently keep the previous problem, so answer here
             return QPSolution(QPStatus.INFEASIBLE, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan),
@@ -242,8 +239,15 @@ class MpcQP:
             self._refine = POLISH_RETRY_REFINE_ITER
             self._solver.update_settings(polish_refine_iter=self._refine)
             info, solution = self._run(l, u)
-        elapsed = time.perf_counter() - t0
         status = _OSQP_STATUS.get(info.status_val, QPStatus.ERROR)
+        polished = info.status_polish == POLISH_SUCCESS
+        settled = None
+        if self._interior_point and status in (QPStatus.MAX_ITER, QPStatus.INACCURATE):
+            settled = _interior_point_solve(self._hessian, self._rows, l, u)
+            if settled is not None:
+                status, solution, polished = QPStatus.SOLVED, settled, True
+                self._solver.warm_start(x=settled)
+        elapsed = time.perf_counter() - t0
         if not status.feasible:
             # a failed solve leaves iterates that mislead the next warm start: start cold
             self._cold = True
@@ -251,9 +255,48 @@ class MpcQP:
                               elapsed, info.iter)
         z = solution[:nz].reshape(N + 1, n)
         z[0] = x
+        v = solution[nz:].reshape(N, self.m)
         # q = 0 and P = 2 * cost, so OSQP's objective is the plan's cost
-        return QPSolution(status, z, solution[nz:].reshape(N, self.m), float(info.obj_val), elapsed, info.iter,
-                          info.status_polish == POLISH_SUCCESS)
+        cost = float(info.obj_val) if settled is None else self.cost(z, v)
+        return QPSolution(status, z, v, cost, elapsed, info.iter, polished)
+
+    def _set_bounds(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
+                    terminal_upper: np.ndarray) -> bool:
+        """Put x (n,), the feed-forward (N, n) or None and the terminal bounds (r_f,) into the rows'
+        bounds; False where the terminal set is empty (lower > upper somewhere)."""
+        n, nz = self.n, self._nz
+        l, u = self._l, self._u
+        np.negative(x, out=l[:n])
+        if coupling is None:
+            l[n:nz] = 0.0
+        else:
+            np.negative(coupling.reshape(-1), out=l[n:nz])
+        u[:nz] = l[:nz]
+        # clipped to +-OSQP_INFTY (np.clip's values, without its dispatch: this runs every step)
+        lower_f, upper_f = l[self._terminal], u[self._terminal]
+        np.minimum(np.maximum(terminal_lower, -OSQP_INFTY, out=lower_f), OSQP_INFTY, out=lower_f)
+        np.minimum(np.maximum(terminal_upper, -OSQP_INFTY, out=upper_f), OSQP_INFTY, out=upper_f)
+        return not (lower_f > upper_f).any()
+
+    def solve_accurately(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
+                         terminal_upper: np.ndarray) -> QPSolution:
+        """The QP of :meth:`solve` (same arguments: x (n,), ``coupling`` (N, n) or None, the terminal
+        bounds ``terminal_lower``, ``terminal_upper`` (r_f,)) solved by the interior-point method
+        to 1e-10, where a plan must meet its rows far below OSQP's accuracy (a starting point
+        others build on); status ``infeasible`` where it finds none."""
+        N, n = self.N, self.n
+        t0 = time.perf_counter()
+        solution = None
+        if self._set_bounds(x, coupling, terminal_lower, terminal_upper):
+            solution = _interior_point_solve(self._hessian, self._rows, self._l, self._u)
+        elapsed = time.perf_counter() - t0
+        if solution is None:
+            return QPSolution(QPStatus.INFEASIBLE, np.full((N + 1, n), np.nan), np.full((N, self.m), np.nan),
+                              float("nan"), elapsed, 0)
+        z = solution[:self._nz].reshape(N + 1, n)
+        z[0] = x
+        v = solution[self._nz:].reshape(N, self.m)
+        return QPSolution(QPStatus.SOLVED, z, v, self.cost(z, v), elapsed, 0, True)
 
     def violations(self, x: np.ndarray, coupling: np.ndarray | None, terminal_lower: np.ndarray,
                    terminal_upper: np.ndarray, z: np.ndarray, v: np.ndarray) -> tuple[float, float]:
@@ -306,3 +349,32 @@ def plan_cost(z: np.ndarray, v: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.
     R (m, m) and P (n, n)."""
     zs, zN = z[:-1], z[-1]
     return float(((zs @ Q) * zs).sum() + ((v @ R) * v).sum() + zN @ P @ zN)
+
+
+def _interior_point_solve(hessian: sp.csc_matrix, rows: sp.csc_matrix, lower: np.ndarray,
+                          upper: np.ndarray) -> np.ndarray | None:
+    """min w' (hessian / 2) w subject to lower <= rows w <= upper, by Clarabel; None unless solved.
+
+    Parameters
+    ----------
+    hessian : sparse matrix, shape (d, d)
+        Upper triangular (OSQP's P).
+    rows : sparse matrix, shape (r, d)
+    lower, upper : ndarray, shape (r,)
+        Bounds; |bound| >= OSQP_INFTY is no bound, lower = upper an equality.
+    """
+    import clarabel  # only where OSQP gave up: an agent process loads it on its first such solve
+
+    equal = lower == upper
+    up = ~equal & (upper < OSQP_INFTY)
+    low = ~equal & (lower > -OSQP_INFTY)
+    A = sp.vstack([rows[np.flatnonzero(equal)], rows[np.flatnonzero(up)], -rows[np.flatnonzero(low)]], format="csc")
+    b = np.concatenate([upper[equal], upper[up], -lower[low]])
+    cones = [clarabel.ZeroConeT(int(equal.sum())), clarabel.NonnegativeConeT(int(up.sum() + low.sum()))]
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = 1e-10
+    result = clarabel.DefaultSolver(hessian, np.zeros(hessian.shape[0]), A, b, cones, settings).solve()
+    if str(result.status) != "Solved":
+        return None
+    return np.asarray(result.x, dtype=float)

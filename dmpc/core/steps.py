@@ -146,7 +146,9 @@ class StepRecord:
     plan, or without a plan of its own); None without one.
 
     ``tracking`` (a :class:`dmpc.tracking.tracker.TrackingStep`) says what the step tracked: the
-    request, its target and the target applied (None where nothing was ever requested).
+    request, its target and the target applied (None where nothing was ever requested). With
+    estimation a request names outputs (``request.y``, (p,); its ``x`` all free), recorded as
+    ``setpoint_y`` (docs/records.md).
 
     ``latency`` (M,) is, per agent, the time from the agent publishing the plan the step used to
     the host receiving it (NaN for an agent without a plan, or where no clock is kept);

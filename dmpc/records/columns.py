@@ -128,6 +128,10 @@ class StepColumns:
             values.update({"setpoint": t.request.x, "setpoint_u": t.request.u, "reference": t.reference.x,
                            "reference_u": t.reference.u, "target": t.applied.x, "target_u": t.applied.u,
                            "governor": t.theta})
+            if rec.estimate is not None or t.request.y is not None:
+                # with estimation requests name outputs: a column in every row (free, NaN, while
+                # nothing is requested), so that the rows keep one layout
+                values["setpoint_y"] = t.request.y if t.request.y is not None else np.full(self.system.p, np.nan)
         for i, s in enumerate(self.system.subsystems):
             values[f"plan_z_{s.name}"] = rec.plans_z[i]
             values[f"plan_v_{s.name}"] = rec.plans_v[i]

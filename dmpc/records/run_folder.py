@@ -19,7 +19,7 @@ from dmpc.core.steps import StepRecord
 from dmpc.core.system import CoupledSystem
 from dmpc.records.columns import StepColumns, StepTally, write_npz
 from dmpc.records.files import ROWS, STEP_LOG, SUMMARY, TRAJECTORY
-from dmpc.records.tracking import target_changes, tracking_summary
+from dmpc.records.tracking import segment_traces, target_changes, tracking_summary
 from dmpc.records.verdict import RunLimits, judge, state_bound_excess
 
 
@@ -246,6 +246,8 @@ def _line_fields(rec: StepRecord) -> dict:
         line.update({"setpoint": t.request.x, "setpoint_u": t.request.u, "reference": t.reference.x,
                      "reference_u": t.reference.u, "target": t.applied.x, "target_u": t.applied.u,
                      "governor": t.theta})
+        if t.request.y is not None:
+            line["setpoint_y"] = t.request.y
     return line
 
 
@@ -332,7 +334,8 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
     step_time = arrays["step_time"][np.isfinite(arrays["step_time"])]
     notes = steps.notes
     limits = limits or RunLimits(steps=K)
-    verdict = judge(system, arrays, notes, limits, inputs_refused, steps.reasons, labels)
+    traces = segment_traces(system, arrays, labels, dt, limits.setpoint_margin)
+    verdict = judge(system, arrays, notes, limits, inputs_refused, steps.reasons, labels, traces)
     names = [s.name for s in system.subsystems]
     return {
         "verdict": verdict.word,
@@ -360,8 +363,8 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
         "solve_time_median_s": float(np.median(finite_solve)) if finite_solve.size else None,
         "step_time_median_s": float(np.median(step_time)) if step_time.size else None,
         "step_time_p99_s": float(np.percentile(step_time, 99)) if step_time.size else None,
-        **({"tracking": tracked} if (tracked := tracking_summary(system, arrays, labels, dt, limits.setpoint_margin))
-           is not None else {}),
+        **({"tracking": tracked} if (tracked := tracking_summary(system, arrays, labels, dt, limits.setpoint_margin,
+                                                                 traces)) is not None else {}),
         **({"keeps": sum(steps.keeps), "keeps_per_agent": dict(zip(names, steps.keeps)),
             "solve_reasons": dict(sorted(steps.solve_reasons.items()))} if steps.keeps else {}),
     }

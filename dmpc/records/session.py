@@ -14,7 +14,7 @@ from dmpc.prepared.bundle import bundle_json
 from dmpc.records.files import BUNDLE, DESIGN, DISTURBANCE, SCENARIO
 from dmpc.records.run_folder import RecordWriteError, RunFolder
 from dmpc.records.verdict import RunLimits
-from dmpc.scenario import dump_resolved
+from dmpc.scenario import Scenario, dump_resolved
 from dmpc.terminal.progress import ProgressBar
 
 
@@ -26,6 +26,23 @@ def seconds_per_step(prepared: Prepared) -> float | None:
     if scenario is not None and scenario.dt is not None:
         return float(scenario.dt)
     return float(prepared.dt) if prepared.mode == "realtime" else None
+
+
+def run_labels(scenario: Scenario) -> dict[str, dict[str, tuple[str, ...]]]:
+    """The labels (``h1 [m]``) the ``scenario`` gives its quantities, for the verdict's messages and
+    the setpoint segments: :func:`~dmpc.core.quantities.named_labels` and ``output``, every
+    subsystem's outputs (its ``outputs``; the states' labels where C is omitted or the identity,
+    else y1, y2, ...)."""
+    labels = named_labels(scenario)
+    labels["output"] = {sub.name: tuple(o.label for o in sub.output_labels()) for sub in scenario.resolved_subsystems()}
+    return labels
+
+
+def measurement_noise_scale(prepared: Prepared) -> float:
+    """The largest standard deviation of the noise the ``prepared`` run's plant adds to its outputs
+    (0 without)."""
+    noise = prepared.plant.measurement_noise
+    return 0.0 if noise is None else float(np.max(noise.std, initial=0.0))
 
 
 class RunRecorder:
@@ -103,9 +120,10 @@ class RunRecorder:
         limits = RunLimits(steps=p.steps, initial_rounds=p.initial_rounds, rounds=p.rounds,
                            initial_tolerance=p.initial_tolerance, tolerance=p.tolerance,
                            stopped=str(info.get("failure") or info.get("aborted") or ""),
-                           setpoint_margin=self.prepared.setpoint_margin)
+                           setpoint_margin=self.prepared.setpoint_margin,
+                           measurement_noise=measurement_noise_scale(self.prepared))
         scenario = self.prepared.scenario
-        self.summary = self.folder.finish(info, limits, named_labels(scenario) if scenario is not None else None,
+        self.summary = self.folder.finish(info, limits, run_labels(scenario) if scenario is not None else None,
                                           seconds_per_step(self.prepared))
         return self.summary
 

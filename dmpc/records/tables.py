@@ -184,12 +184,13 @@ def _segment_label(at: int, dt: float | None) -> str:
 def _segment_text(entry: dict) -> str:
     """One segment ``entry`` of ``tracking.segments``: the value asked, and whether it was reached
     (when, and the error at the segment's end) or not (the error, the tolerance and an unreachable
-    request's target)."""
+    request's target; an output's reachability is not judged, ``reachable`` None)."""
     text = f"{entry['subsystem']}: {entry['component']} = {entry['asked']:.6g}"
     if entry["reached"]:
         seconds = f" ({entry['settling_s']:.3g} s)" if entry.get("settling_s") is not None else ""
         return f"{text} reached in {entry['settling_steps']} steps{seconds}, error {entry['error_at_end']:.2g}"
-    unreachable = "" if entry["reachable"] else f"; no admissible steady state, target {entry['target']:.6g}"
+    unreachable = ("" if entry.get("reachable") is not False
+                   else f"; no admissible steady state, target {entry['target']:.6g}")
     return f"{text} not reached (error {entry['error_at_end']:.2g}, tolerance {entry['tolerance']:.2g}{unreachable})"
 
 

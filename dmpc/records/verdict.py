@@ -22,6 +22,9 @@ kind                      class     when
 ``setpoint-unreachable``  warning   no admissible steady state meets a requested value: the
                                     nearest one was tracked (the message names the gap); one per
                                     component and value asked
+``offset``                warning   a tracked component (state, output or input) settled off the
+                                    value asked at the end of its setpoint segment (below)
+``estimator-diverging``   warning   with estimation: the innovation kept growing (below)
 ========================  ========  ==============================================================
 
 With setpoints, ``not-converged`` measures the final state from the target applied at the last
@@ -31,18 +34,53 @@ the target applied had not reached the request's yet. A request's gap counts onc
 target solver's accuracy (:func:`dmpc.records.tracking.gap_tolerance`): a request exactly on the
 setpoint margin is met.
 
+A run whose requests name outputs (with estimation: ``setpoint_y``) is judged on the outputs
+instead: ``not-converged`` when a requested output's C x(end) (or a requested input's u(end)) is
+further from the value asked than ``CONVERGED_FRACTION`` times the largest setpoint step, the
+largest |step| of its segments (:func:`dmpc.records.tracking.segments`: the change of the value
+asked, the first one from the initial output); the unmeasured states have no setpoint, and under
+a model mismatch their steady state is not the model's target.
+
+``offset``: per setpoint segment and tracked component, |error_at_end| (the segment's, in
+``tracking.segments``) above ``OFFSET_FRACTION`` times |step| (the change of the value asked at the
+segment's start, from the initial value for the first), and above what the target itself explains
+(its own gap from the value asked, plus 1e-6 max(1, |asked|)), while the error has *settled*: over
+the segment's last ``SETTLED_TAIL`` of its values (at least ``SETTLED_VALUES``, at most all) it
+stays within ``SETTLED_CHANGE`` of its value at the end. At that pace the error would need about
+the segment's whole length again to go, so within the segment it is an offset, not a slow
+approach; an error still moving by more (a slow loop, noise, a disturbance that varies) is not
+reported. A segment whose request has no admissible steady state (``setpoint-unreachable`` says
+so), or whose applied target the reference governor still held back at its end (by more than the
+limit), is left out: its error is not the plant's. The message names the cause: without
+estimation a plant that differs from the model or a constant disturbance (``estimation:`` removes
+both); with it, an estimate that has not converged or a bound that holds the target back.
+
+``estimator-diverging`` (with estimation, ``innovation`` recorded): the innovation's largest value
+rose from each to the next of ``INNOVATION_WINDOWS`` equal windows of the run's last quarter (it
+kept growing to the end: a transient after a setpoint change or a disturbance step rises once and
+decays), and the last window's largest is above ``INNOVATION_GROWTH`` times the first quarter's
+largest, above ``INNOVATION_NOISE`` times the largest standard deviation of the measurement noise
+(``RunLimits.measurement_noise``: a filter's innovation stays within a few of them) and above
+``INNOVATION_FLOOR`` max(1, max |y|) (round-off). Or the innovation is not finite. A warning, not a
+failure: the plant's own state is judged by the failures above (a divergence that reaches it is
+``diverged``, ``state-violated`` or ``infeasible``), and the growth is a trend read from the
+records, which can see a steady growth of genuine surprises, e.g. a ramp of setpoints far from
+the linearisation, as one.
+
 The reference size of the divergence test is the larger of ||x(0)||_inf and the largest finite
 state bound, or 1 when both are zero.
 """
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from dmpc.core.steps import NO_SEED
 from dmpc.core.system import CoupledSystem, LinearSet
-from dmpc.records.tracking import is_tracked, unreachable
+from dmpc.records.tracking import SegmentTrace, has_outputs, is_tracked, outputs_of, segment_traces, unreachable
 from dmpc.tracking.targets import DEFAULT_MARGIN
 
 BOUND_TOL = 1e-6
@@ -57,6 +95,28 @@ CONVERGED_FLOOR = 1e-9
 whatever the steps (a run that starts on its only target)."""
 SHOWN_STEPS = 8
 """Steps listed in a message before ``...``."""
+OFFSET_FRACTION = 1e-4
+"""A tracked component's error at the end of its segment is an offset above this fraction of the
+segment's setpoint step (``offset``)."""
+SETTLED_TAIL = 0.1
+"""The part of a segment (its last values) over which an error must have settled to be an offset."""
+SETTLED_VALUES = 10
+"""At least this many of the segment's last values (all of a shorter segment's) are looked at."""
+SETTLED_CHANGE = 0.1
+"""An error has settled when it stays within this fraction of its final value over the tail."""
+INNOVATION_WINDOWS = 4
+"""Windows of the run's last quarter over which the innovation's largest value must keep rising."""
+INNOVATION_GROWTH = 10.0
+"""The innovation's largest value at the end must exceed this multiple of the first quarter's."""
+INNOVATION_NOISE = 10.0
+"""... and this multiple of the largest standard deviation of the measurement noise."""
+INNOVATION_FLOOR = 1e-9
+"""... and this fraction of max(1, max |y|): growth of round-off is not a divergence."""
+OFFSET_CAUSE = ("a plant that differs from the model, or a constant disturbance; `estimation:` removes such "
+                'offsets (docs/algorithm.md, "Offset-free tracking")')
+"""Why a run without estimation settles off its setpoint (the ``offset`` message)."""
+OFFSET_CAUSE_ESTIMATED = "the estimate has not converged or a bound holds the target back"
+"""Why a run with estimation still does."""
 
 OK = "ok"
 FAILED = "failed"
@@ -123,6 +183,10 @@ class RunLimits:
     setpoint_margin : float
         The fraction of every bound the setpoint targets keep free (``options.setpoint_margin``):
         a request on it is reachable.
+    measurement_noise : float
+        The largest standard deviation of the noise the plant adds to its outputs
+        (``plant.measurement_noise``; 0: exact measurements): the scale below which the
+        innovation's growth is not judged (``estimator-diverging``).
     """
 
     steps: int
@@ -132,6 +196,7 @@ class RunLimits:
     tolerance: float = 1e-9
     stopped: str = ""
     setpoint_margin: float = DEFAULT_MARGIN
+    measurement_noise: float = 0.0
 
 
 def _steps_text(steps: list[int]) -> str:
@@ -209,7 +274,8 @@ def reference_size(system: CoupledSystem, x0: np.ndarray) -> float:
 
 def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str], limits: RunLimits,
           inputs_refused: dict[str, int] | None = None, reasons: list[str] | tuple[str, ...] = ("",),
-          labels: dict[str, dict[str, tuple[str, ...]]] | None = None) -> Verdict:
+          labels: dict[str, dict[str, tuple[str, ...]]] | None = None,
+          traces: list[SegmentTrace] | None = None) -> Verdict:
     """The verdict of a run from its arrays (see :func:`dmpc.records.run_folder.trajectory_arrays`).
 
     Parameters
@@ -226,8 +292,15 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
     reasons : sequence of str
         ``reasons[0] == ""``; ``qp <status>`` for a failed QP, ``missed``, ``lost`` or a refusal.
     labels : dict, optional
-        ``{"state": {subsystem: labels}, "input": {...}}``: the names and units the scenario gives
-        (:func:`dmpc.core.quantities.named_labels`), used instead of ``component x1`` in the messages.
+        ``{"state": {subsystem: labels}, "input": {...}, "output": {...}}``: the names and units the
+        scenario gives (:func:`dmpc.core.quantities.named_labels`, the outputs' from the scenario's
+        ``outputs``), used instead of ``component x1`` in the messages.
+    traces : list of SegmentTrace, optional
+        The run's setpoint segments (:func:`dmpc.records.tracking.segment_traces` of the same
+        ``system``, ``arrays``, ``labels`` and ``limits.setpoint_margin``), when already computed.
+
+    With estimation ``arrays`` also has ``innovation`` (K,) and ``y`` (K, p); with requests on
+    outputs ``setpoint_y`` (K, p).
     """
     x, u = arrays["x"], arrays["u"]
     K = u.shape[0]
@@ -290,13 +363,21 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
         warnings.append(Finding("inputs-refused", "plans refused for inputs outside U_i (" +
                                 ", ".join(f"{name}: {count}" for name, count in sorted(refused.items())) + ")",
                                 amount=float(sum(refused.values()))))
-    if x.shape[0] and not any(f.kind == "diverged" for f in failures):
-        warnings += _convergence(x, arrays, norms, ref)
+    if traces is None:
+        traces = segment_traces(system, arrays, labels, margin=limits.setpoint_margin)
+    diverged = any(f.kind == "diverged" for f in failures)
+    if x.shape[0] and not diverged:
+        warnings += (_output_convergence(system, x, arrays, traces, ref) if has_outputs(arrays)
+                     else _convergence(x, arrays, norms, ref))
     warnings += [Finding("setpoint-unreachable",
                          f"subsystem {g['subsystem']}: {g['component']} = {g['asked']:.6g} asked from k = {g['k']} has "
                          f"no admissible steady state; the nearest, {g['target']:.6g}, is tracked instead "
                          f"(gap {g['gap']:.3g})", g["subsystem"], [g["k"]], abs(g["gap"]))
                  for g in unreachable(system, arrays, labels, limits.setpoint_margin)]
+    if not diverged:
+        warnings += _offsets(traces, "x_hat" in arrays)
+    if "innovation" in arrays:
+        warnings += _estimator(arrays, limits)
     capped = _capped_steps(arrays, limits)
     if capped:
         change = arrays["max_change"]
@@ -345,6 +426,106 @@ def _convergence(x: np.ndarray, arrays: dict[str, np.ndarray], norms: np.ndarray
                                               f"(the reference governor moved it {arrays['governor'][-1]:.3g} of the "
                                               "way at the last step)", amount=short))
     return found
+
+
+def _output_convergence(system: CoupledSystem, x: np.ndarray, arrays: dict[str, np.ndarray],
+                        traces: list[SegmentTrace], size: float) -> list[Finding]:
+    """``not-converged`` of a run whose requests name outputs: the requested outputs C x(end) (and
+    inputs u(end)) from the values asked at the last step, against the largest setpoint step of
+    the run's segments (``traces``); and the target applied at the end short of the request's, in
+    the outputs and inputs. ``x`` (K+1, n), ``arrays`` the run's, ``size`` the reference size
+    (:func:`reference_size`)."""
+    K = arrays["u"].shape[0]
+    y_end, asked_y = outputs_of(system, x[-1]), arrays["setpoint_y"][K - 1]
+    asked_u = arrays["setpoint_u"][K - 1]
+    inputs = np.isfinite(asked_u)
+    errors = np.concatenate([(y_end - asked_y)[np.isfinite(asked_y)], (arrays["u"][K - 1] - asked_u)[inputs]])
+    step = max((abs(t.entry["step"]) for t in traces), default=0.0)
+    limit = max(CONVERGED_FRACTION * step, CONVERGED_FLOOR * size)
+    found = []
+    end = float(np.max(np.abs(errors), initial=0.0))
+    if end > limit:
+        what = "outputs (C x(end)) and inputs" if inputs.any() else "outputs (C x(end))"
+        found.append(Finding("not-converged", f"the requested {what} end up to {end:.3g} from the values asked, more "
+                                              f"than {CONVERGED_FRACTION:g} x the largest setpoint step, {step:.3g}",
+                             amount=end))
+    gap = np.concatenate([outputs_of(system, arrays["reference"][-1] - arrays["target"][-1]),
+                          arrays["reference_u"][-1] - arrays["target_u"][-1]])
+    short = float(np.max(np.abs(gap), initial=0.0))
+    if short > limit:
+        found.append(Finding("not-converged", f"the target applied at the end is {short:.3g} short of the setpoint's "
+                                              f"(the reference governor moved it {arrays['governor'][-1]:.3g} of the "
+                                              "way at the last step)", amount=short))
+    return found
+
+
+def _name_and_unit(label: str) -> tuple[str, str]:
+    """``Ta [K]`` as (``Ta``, `` K``): the name, and the unit with a space before it ('' without)."""
+    match = re.fullmatch(r"(.*) \[(.*)\]", label)
+    return (match.group(1), f" {match.group(2)}") if match else (label, "")
+
+
+def short_number(value: float) -> str:
+    """``value`` with two significant digits, in scientific notation without padding below 1e-3 or
+    from 1e4 on (``8.5e-4``), else as ``%g`` does (``0.0046``, ``0.15``)."""
+    if value == 0 or not math.isfinite(value) or 1e-3 <= abs(value) < 1e4:
+        return f"{value:.2g}"
+    mantissa, exponent = f"{value:.1e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def _offsets(traces: list[SegmentTrace], estimated: bool) -> list[Finding]:
+    """``offset``: the segments of ``traces`` whose component settled off the value asked (the rule in
+    the module's docstring); ``estimated``: the run had estimation (the message's cause)."""
+    found = []
+    for trace in traces:
+        entry, errors = trace.entry, trace.errors
+        if entry["reachable"] is False or errors.size == 0 or not np.all(np.isfinite(errors)):
+            continue
+        error = float(entry["error_at_end"])
+        limit = max(OFFSET_FRACTION * abs(entry["step"]), trace.accuracy)
+        if not abs(error) > limit or trace.held > limit:
+            continue
+        tail = errors[-max(math.ceil(SETTLED_TAIL * errors.size), min(errors.size, SETTLED_VALUES)):]
+        if float(np.max(np.abs(tail - error))) > SETTLED_CHANGE * abs(error):
+            continue
+        name, unit = _name_and_unit(entry["component"])
+        last = entry["until"] - 1
+        cause = f" with estimation: {OFFSET_CAUSE_ESTIMATED}" if estimated else f": {OFFSET_CAUSE}"
+        found.append(Finding("offset", f"{name} of subsystem {entry['subsystem']} settled {short_number(abs(error))}"
+                                       f"{unit} off its setpoint {entry['asked']:.6g} at the end of its segment "
+                                       f"(step {last}){cause}", entry["subsystem"], [last], abs(error)))
+    return found
+
+
+def _estimator(arrays: dict[str, np.ndarray], limits: RunLimits) -> list[Finding]:
+    """``estimator-diverging`` from the recorded ``innovation`` (K,) and outputs ``y`` (K, p) of
+    ``arrays``, with the measurement noise of ``limits`` (the rule in the module's docstring)."""
+    innovation = np.asarray(arrays["innovation"], float)
+    K = innovation.size
+    bad = np.flatnonzero(~np.isfinite(innovation))
+    if bad.size:
+        k = int(bad[0])
+        return [Finding("estimator-diverging", f"the estimator's innovation is not finite from step {k} on: the "
+                                               "estimate diverged", steps=[k], amount=float("inf"))]
+    quarter = K // 4
+    if quarter < INNOVATION_WINDOWS:
+        return []
+    first = float(np.max(innovation[:quarter]))
+    peaks = [float(np.max(w)) for w in np.array_split(innovation[K - quarter:], INNOVATION_WINDOWS)]
+    y = np.asarray(arrays.get("y", np.zeros((0, 0))), float)
+    scale = max(1.0, float(np.max(np.abs(y), initial=0.0)) if np.all(np.isfinite(y)) else 1.0)
+    floor = max(INNOVATION_GROWTH * first, INNOVATION_NOISE * limits.measurement_noise, INNOVATION_FLOOR * scale)
+    if not (all(b > a for a, b in zip(peaks, peaks[1:])) and peaks[-1] > floor):
+        return []
+    k = K - quarter + int(np.argmax(innovation[K - quarter:]))
+    return [Finding("estimator-diverging", f"the estimator's innovation ||y - C x^ - C_d d^||_inf kept growing over "
+                                           f"the last quarter of the run, to {peaks[-1]:.3g} at step {k} "
+                                           f"({peaks[-1] / first if first > 0 else float('inf'):.3g} x the first "
+                                           f"quarter's largest, {first:.3g}): the estimate is drifting away from the "
+                                           "plant, which differs from the model more than the estimator can follow "
+                                           '(docs/algorithm.md, "Offset-free tracking")', steps=[k],
+                    amount=peaks[-1])]
 
 
 def _capped_steps(arrays: dict[str, np.ndarray], limits: RunLimits) -> list[int]:

@@ -39,6 +39,13 @@ def design_coupling(prepared: Prepared) -> InputCoupling:
     return input_coupling(prepared.system, gains.K, gains.P, prepared.design.horizon, prepared.protocol.rounds)
 
 
+def design_with_coupling(prepared: Prepared, coupling: InputCoupling | None = None) -> dict:
+    """``dmpc design --json`` of a ``prepared`` run: its ``design.json`` and the input-coupling
+    figures (``coupling``, computed here when not given)."""
+    coupling = design_coupling(prepared) if coupling is None else coupling
+    return {**prepared.design_json(), "input_coupling": coupling.to_json(prepared.names)}
+
+
 def scenario_coupling(scenario: Scenario, system: CoupledSystem | None = None) -> InputCoupling | None:
     """The figures for a ``scenario`` without its design (``dmpc validate``); None when no B_ij != 0.
     ``system``: the scenario's, if built already (it is built only when the file has some B_ij != 0)."""
