@@ -102,6 +102,6 @@ def test_a_pair_in_this_process_on_the_paper(tmp_path):
         assert row["wall_s"] > 0 and row["qp_iterations_max"] >= row["qp_iterations_p50"] > 0
     # the cooperative release carries the iterate, z (N+1, n) and v (N, m): 11 x 8 + 10 x 4 more numbers
     assert coop["release_bytes"] - ref["release_bytes"] >= (11 * 8 + 10 * 4) * 8
-    assert ref["rounds_k0"] > coop["rounds_k0"] == 1
+    assert ref["rounds_k0"] > coop["rounds_k0"] >= 1  # Jacobi to convergence against the cooperative start
     with pytest.raises(ValueError, match="M = 8"):
         cooperative.case_overrides("paper", 8, 6)

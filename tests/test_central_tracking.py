@@ -75,7 +75,7 @@ def test_centralized_costs_at_most_what_tv_box_costs_on_the_schedule(runs, recor
     # both apply the same targets here (no governor step after k = 0), so the costs compare
     assert np.array_equal(stacked(runs["centralized"], "target"), stacked(runs["tv-box"], "target"))
     assert central == pytest.approx(closed_loop_cost_around(runs["centralized"], "target"), rel=1e-12)
-    record_property("tv_box_over_centralized_with_setpoints", box / central)
+    record_property("tv_box_over_centralized_with_setpoints", float(box / central))
     print(f"closed-loop cost with setpoints: centralized {central:.6f}, tv-box {box:.6f}, ratio {box / central:.6f}")
     assert central <= box * (1.0 + COST_TOLERANCE)
 

@@ -251,14 +251,23 @@ def test_paper_across_namespaces_equals_simulate(procs, lab, paper_simulated, tm
                            *plant_net, *common)
     agents = [procs.start_in(f"agent{name}", "agent", "scenarios/paper.yaml", "--id", name, *agent_net, *common)
               for name in AGENTS]
-    # whom does each agent's host hold TCP connections with while the run steps? Sampled until the
-    # end: Zenoh may replace a link (two peers dialling each other), so one snapshot can miss it.
-    assert wait_for(lambda: step_lines(out) >= 1 or plant.poll() is not None, timeout=90), procs.log(plant)
+    # whom does each agent's host hold TCP connections with while the run starts and steps? Sampled
+    # from the agents' start to the end: Zenoh may replace a link (two peers dialling each other),
+    # so one snapshot can miss it, and a short run can end before a sampling that waits for it.
     linked: dict[str, set[str]] = {name: set() for name in AGENTS}
-    deadline = time.monotonic() + 120
-    while plant.poll() is None and time.monotonic() < deadline:
+
+    def sample() -> None:
         for name, a in zip(AGENTS, agents):
             linked[name] |= _established_peers(a.pid)
+
+    def stepping() -> bool:
+        sample()
+        return step_lines(out) >= 1 or plant.poll() is not None
+
+    assert wait_for(stepping, timeout=90), procs.log(plant)
+    deadline = time.monotonic() + 120
+    while plant.poll() is None and time.monotonic() < deadline:
+        sample()
         time.sleep(0.05)
     plant.wait(timeout=10)
     for a in agents:

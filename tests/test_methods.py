@@ -74,7 +74,7 @@ def test_centralised_cost_is_at_most_every_distributed_cost(comparison, record_p
     for method in DISTRIBUTED:
         assert central <= data["methods"][method]["closed_loop_cost"] + 1e-9, method
     ratio = data["methods"]["tv-box"]["closed_loop_cost"] / central
-    record_property("tv_box_over_centralized", ratio)
+    record_property("tv_box_over_centralized", float(ratio))
     print(f"closed-loop cost tv-box / centralized = {ratio:.5f}")
     assert 1.0 <= ratio < 1.01
 

@@ -258,7 +258,7 @@ def test_shifted_candidate_is_feasible(run, record_property):
             assert deviation <= a["beta"][k1] + 1e-6, (k1, i, deviation, a["beta"][k1])
             # the QP's optimum at k+1 is no worse than this feasible point
             assert now.J_agents[i] <= plan_cost(z_c, v_c, run.P[i]) + 1e-6, (k1, i)
-    record_property("candidate_terminal_deviation_max", worst_deviation)
+    record_property("candidate_terminal_deviation_max", float(worst_deviation))
 
 
 def test_paper_cost_non_increasing(paper):

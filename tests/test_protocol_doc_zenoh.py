@@ -121,17 +121,24 @@ def test_both_documented_ways_read_a_token_that_already_exists():
     token = coordinator.liveliness().declare_token(f"dmpc/{RUN}/alive/coordinator")
     plant = zenoh.open(client(endpoint))
     try:
-        time.sleep(0.5)  # the token is declared, well before the plant looks
+        # the token is declared before the plant looks: wait until the plant's session knows it
+        # (a get answers once its link to the coordinator is up, however loaded the machine)
+        found: list[str] = []
+        deadline = time.monotonic() + 30
+        while not found and time.monotonic() < deadline:
+            found = [str(r.ok.key_expr) for r in plant.liveliness().get(f"dmpc/{RUN}/alive/*", timeout=1.0)
+                     if r.ok is not None]
+        assert found == [f"dmpc/{RUN}/alive/coordinator"]
         seen: list = []
         history = plant.liveliness().declare_subscriber(
             f"dmpc/{RUN}/alive/coordinator", lambda s: seen.append((str(s.key_expr), s.kind)), history=True)
         without: list = []
         plain = plant.liveliness().declare_subscriber(f"dmpc/{RUN}/alive/*", lambda s: without.append(s))
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30
         while not seen and time.monotonic() < deadline:
             time.sleep(0.05)
         assert seen == [(f"dmpc/{RUN}/alive/coordinator", zenoh.SampleKind.PUT)]
-        replies = list(plant.liveliness().get(f"dmpc/{RUN}/alive/*", timeout=5.0))
+        replies = list(plant.liveliness().get(f"dmpc/{RUN}/alive/*", timeout=10.0))
         assert [str(r.ok.key_expr) for r in replies if r.ok is not None] == [f"dmpc/{RUN}/alive/coordinator"]
         assert without == []  # why the page says so: without history, a token that exists is not reported
         history.undeclare()

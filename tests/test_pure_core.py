@@ -52,8 +52,8 @@ CORE_MODULES = {
     "dmpc.coordinator.barrier": ROOT / "coordinator" / "barrier.py",  # the coordinator's state machine
     # ... and its parts
     **{f"dmpc.coordinator.{part}": ROOT / "coordinator" / f"{part}.py" for part in (
-        "actions", "candidates", "combiner", "cooperative_rounds", "guard", "open_step", "refusals", "round_barrier",
-        "setpoint_intake", "step_close")},
+        "actions", "candidates", "combiner", "cooperative_rounds", "estimation", "guard", "open_step", "refusals",
+        "round_barrier", "setpoint_intake", "step_close")},
     "dmpc.plant.dynamics": ROOT / "plant" / "dynamics.py",
     "dmpc.plant.disturbance": ROOT / "plant" / "disturbance.py",
     "dmpc.plant.state_inbox": ROOT / "plant" / "state_inbox.py",  # the coordinator's checks of a state
