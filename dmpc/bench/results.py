@@ -486,7 +486,9 @@ def cooperative_lines(measured: dict) -> list[str]:
              "it is published once and every agent process receives a copy. kB / step: the releases and the plan "
              "messages of a step from k = 1, each payload counted once. QP solve median: `summary.json`, every "
              "agent and step, a solve's wall time in its process (as processes, shared with every other process "
-             "on the machine's cores while the agents of a round solve at once). QP iterations: OSQP's, from k = 1, median and largest over every agent and step. "
+             "on the machine's cores while the agents of a round solve at once). QP iterations: OSQP's, from k = 1, "
+             "median and largest over every agent and step (10000 is OSQP's cap: a `tv-box-coop` agent's QP that "
+             "reaches it is solved again by Clarabel, dmpc/cooperative/agent_qp.py). "
              "Speed figure: this machine's just before the pair (ms for 10^6 Python additions)."]
     if measured.get("inprocess"):
         lines += ["", "### In this process", "",
