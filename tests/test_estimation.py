@@ -31,7 +31,6 @@ from dmpc.estimation.model import augment, check_detectable, rank_condition, und
 from dmpc.estimation.observer import Observer, local_update
 from dmpc.estimation.targets import REGULARISATION, OffsetFreeTargets, gauge_rows
 from dmpc.plant.fourtank import FourTank, FourTankPlant
-from dmpc.tracking.targets import gauge_rows as tracking_gauge_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 FOURTANK = ROOT / "scenarios" / "fourtank.yaml"
@@ -265,8 +264,8 @@ def cvxpy_target(model, request, d_hat, gauge_limit=None):
         subs = system.subsystems
         X = stack_sets([s.state_set for s in subs], [s.n for s in subs])
         U = stack_sets([s.input_set for s in subs], [s.m for s in subs])
-        constraints += [tracking_gauge_rows(X, n).toarray() @ x <= gauge_limit,
-                        tracking_gauge_rows(U, m).toarray() @ u <= gauge_limit]
+        constraints += [gauge_rows(X, n).toarray() @ x <= gauge_limit,
+                        gauge_rows(U, m).toarray() @ u <= gauge_limit]
     problem = cp.Problem(cp.Minimize(cp.quad_form(cp.hstack([x, u]), cp.psd_wrap(D))), constraints)
     problem.solve(solver=cp.CLARABEL)
     if problem.status not in ("optimal", "optimal_inaccurate"):
@@ -349,14 +348,23 @@ def test_a_pattern_that_cannot_be_met_is_a_design_error():
         OffsetFreeTargets(augment(CoupledSystem((lost,)), None, "input")).target([np.nan, np.nan], np.zeros(1))
 
 
-def test_the_gauge_rows_are_the_setpoint_targets():
+def test_the_gauge_rows_give_the_sets_gauge():
+    """max(0, max_p a_p v) is the Minkowski gauge of the set: v / gauge lies on its boundary."""
     rng = np.random.default_rng(5)
     for _ in range(5):
         H = rng.normal(size=(4, 3))
         lower = np.where(rng.random(4) < 0.3, -np.inf, -rng.uniform(0.5, 2, 4))
         upper = np.where(rng.random(4) < 0.3, np.inf, rng.uniform(0.5, 2, 4))
-        linear_set = LinearSet(H, lower, upper)
-        assert (gauge_rows(linear_set, 3) != tracking_gauge_rows(linear_set, 3)).nnz == 0
+        rows = gauge_rows(LinearSet(H, lower, upper), 3).toarray()
+        for v in rng.normal(size=(10, 3)):
+            gauge = max(0.0, float((rows @ v).max()))
+            if gauge == 0.0:  # every multiple of v is in the set: no finite bound in its way
+                hv = H @ v
+                assert np.all(hv[np.isfinite(upper)] <= 1e-12) and np.all(hv[np.isfinite(lower)] >= -1e-12)
+                continue
+            w = H @ (v / gauge)
+            assert np.all(w <= upper + 1e-9) and np.all(w >= lower - 1e-9)
+            assert np.any(np.isclose(w, upper)) or np.any(np.isclose(w, lower))
 
 
 # ---------------------------------------------------------------------------- closed loop

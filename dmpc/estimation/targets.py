@@ -66,8 +66,8 @@ SOLVE_TOLERANCE = 1e-8
 def gauge_rows(linear_set: LinearSet | None, dim: int) -> sp.csr_matrix:
     """Rows a_p with gauge(v) = max(0, max_p a_p v) for ``linear_set`` = ``{lower <= H v <= upper}``.
 
-    The same rows as dmpc.tracking.targets.gauge_rows (tests/test_estimation.py compares them):
-    each finite, nonzero side of each row gives H_r / upper_r or H_r / lower_r.
+    Each finite, nonzero side of each row gives H_r / upper_r or H_r / lower_r (the setpoint targets
+    of dmpc.tracking use the same rows).
 
     Parameters
     ----------

@@ -30,7 +30,8 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from dmpc.core.system import CoupledSystem, LinearSet, stack_sets
+from dmpc.core.system import CoupledSystem, stack_sets
+from dmpc.estimation.targets import gauge_rows
 
 DEFAULT_MARGIN = 0.05
 """A target keeps this fraction of the way from the origin to every finite bound free: lambda >= it."""
@@ -144,25 +145,6 @@ class Target:
         x = self.x + theta * (other.x - self.x)
         u = self.u + theta * (other.u - self.u)
         return Target(x, u, space.scale(x, u), other.gap_x, other.gap_u, other.reachable)
-
-
-def gauge_rows(linear_set: LinearSet | None, dim: int) -> sp.csr_matrix:
-    """Rows a_p with gauge(v) = max(0, max_p a_p v) for ``linear_set`` = ``{lower <= H v <= upper}``
-    (None: no rows), shape (q, dim).
-
-    Each finite side of each row gives one: H_r / upper_r and H_r / lower_r. The origin must lie
-    in the set's interior (lower < 0 < upper where finite); DesignError-free: that is checked by
-    the design (its terminal set needs it too).
-    """
-    if linear_set is None:
-        return sp.csr_matrix((0, dim))
-    H = sp.csr_matrix(linear_set.H)
-    parts = []
-    for bound in (linear_set.upper, linear_set.lower):
-        finite = np.isfinite(bound) & (bound != 0)
-        if finite.any():
-            parts.append(sp.diags(1.0 / bound[finite]) @ H[np.flatnonzero(finite)])
-    return sp.vstack(parts, format="csr") if parts else sp.csr_matrix((0, dim))
 
 
 class TargetSpace:
