@@ -12,7 +12,59 @@ what keeping may cost at most. The optimum is a quadratic form in x and c, forme
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+
+@dataclass(frozen=True)
+class Condensed:
+    """One agent's QP with the dynamics substituted: z = Phi x + Gamma v + Psi c over t = 0..N.
+
+    Attributes
+    ----------
+    phi : ndarray, shape ((N+1) n, n)
+        z(t) from x.
+    gamma : ndarray, shape ((N+1) n, N m)
+        z(t) from v(s), s < t.
+    psi : ndarray, shape ((N+1) n, N n)
+        z(t) from c(s), s < t.
+    weights : ndarray, shape ((N+1) n, (N+1) n)
+        Qbar = blockdiag(Q, ..., Q, P).
+    weighted_gamma : ndarray, shape ((N+1) n, N m)
+        Qbar Gamma.
+    hessian : ndarray, shape (N m, N m)
+        H = Gamma' Qbar Gamma + Rbar.
+    """
+
+    phi: np.ndarray
+    gamma: np.ndarray
+    psi: np.ndarray
+    weights: np.ndarray
+    weighted_gamma: np.ndarray
+    hessian: np.ndarray
+
+
+def condensed(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray, horizon: int) -> Condensed:
+    """The :class:`Condensed` form of the QP with dynamics ``A`` (n, n), ``B`` (n, m), weights ``Q``
+    (n, n), ``R`` (m, m), ``P`` (n, n) over ``horizon`` N steps."""
+    n, m, N = B.shape[0], B.shape[1], horizon
+    powers = [np.eye(n)]
+    for _ in range(N):
+        powers.append(A @ powers[-1])
+    phi = np.vstack(powers)
+    gamma = np.zeros(((N + 1) * n, N * m))
+    psi = np.zeros(((N + 1) * n, N * n))
+    for t in range(1, N + 1):
+        for s in range(t):
+            gamma[t * n:(t + 1) * n, s * m:(s + 1) * m] = powers[t - 1 - s] @ B
+            psi[t * n:(t + 1) * n, s * n:(s + 1) * n] = powers[t - 1 - s]
+    weights = np.zeros(((N + 1) * n, (N + 1) * n))
+    weights[:N * n, :N * n] = np.kron(np.eye(N), Q)
+    weights[N * n:, N * n:] = P
+    weighted_gamma = weights @ gamma
+    hessian = gamma.T @ weighted_gamma + np.kron(np.eye(N), R)
+    return Condensed(phi, gamma, psi, weights, weighted_gamma, hessian)
 
 
 class UnconstrainedBound:
@@ -31,25 +83,11 @@ class UnconstrainedBound:
 
     def __init__(self, A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray,
                  horizon: int) -> None:
-        n, m, N = B.shape[0], B.shape[1], horizon
-        powers = [np.eye(n)]
-        for _ in range(N):
-            powers.append(A @ powers[-1])
-        phi = np.vstack(powers)  # ((N+1) n, n): z(t) from x
-        gamma = np.zeros(((N + 1) * n, N * m))  # z(t) from v(s), s < t
-        psi = np.zeros(((N + 1) * n, N * n))  # z(t) from c(s), s < t
-        for t in range(1, N + 1):
-            for s in range(t):
-                gamma[t * n:(t + 1) * n, s * m:(s + 1) * m] = powers[t - 1 - s] @ B
-                psi[t * n:(t + 1) * n, s * n:(s + 1) * n] = powers[t - 1 - s]
-        weights = np.zeros(((N + 1) * n, (N + 1) * n))  # blockdiag(Q, ..., Q, P)
-        weights[:N * n, :N * n] = np.kron(np.eye(N), Q)
-        weights[N * n:, N * n:] = P
-        weighted_gamma = weights @ gamma  # Qbar Gamma
-        H = gamma.T @ weighted_gamma + np.kron(np.eye(N), R)
+        n = B.shape[0]
+        qp = condensed(A, B, Q, R, P, horizon)
         # the optimum is a quadratic form in w = [x; c]: s = L w, J* = s'(Qbar - Qbar Gamma H^-1 Gamma' Qbar) s
-        lift = np.hstack([phi, psi])
-        reduced = weights - weighted_gamma @ np.linalg.solve(H, weighted_gamma.T)
+        lift = np.hstack([qp.phi, qp.psi])
+        reduced = qp.weights - qp.weighted_gamma @ np.linalg.solve(qp.hessian, qp.weighted_gamma.T)
         form = lift.T @ reduced @ lift
         self._form = 0.5 * (form + form.T)
         self._n = n

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dmpc.core.system import CoupledSystem
+from dmpc.core.unconstrained import condensed
 
 DENSE_LIMIT = 1500
 """Largest dimension of T (sum_i (N-1) n_i + N m_i) whose eigenvalues are computed; above it the
@@ -241,25 +242,12 @@ def agent_response(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, P
     horizon : int
         N >= 1.
     """
-    n, m, N = B.shape[0], B.shape[1], horizon
-    powers = [np.eye(n)]
-    for _ in range(N):
-        powers.append(A @ powers[-1])
-    phi = np.vstack(powers)  # ((N+1) n, n): z(t) from x
-    gamma = np.zeros(((N + 1) * n, N * m))  # z(t) from v(s), s < t
-    psi = np.zeros(((N + 1) * n, N * n))  # z(t) from c(s), s < t
-    for t in range(1, N + 1):
-        for s in range(t):
-            gamma[t * n:(t + 1) * n, s * m:(s + 1) * m] = powers[t - 1 - s] @ B
-            psi[t * n:(t + 1) * n, s * n:(s + 1) * n] = powers[t - 1 - s]
-    weights = np.zeros(((N + 1) * n, (N + 1) * n))  # blockdiag(Q, ..., Q, P)
-    weights[:N * n, :N * n] = np.kron(np.eye(N), Q)
-    weights[N * n:, N * n:] = P
-    weighted = gamma.T @ weights  # (N m, (N+1) n)
-    H = weighted @ gamma + np.kron(np.eye(N), R)
-    Vx = -np.linalg.solve(H, weighted @ phi)
-    Vc = -np.linalg.solve(H, weighted @ psi)
-    return AgentResponse(Zx=(phi + gamma @ Vx)[n:], Zc=(psi + gamma @ Vc)[n:], Vx=Vx, Vc=Vc)
+    n = B.shape[0]
+    qp = condensed(A, B, Q, R, P, horizon)
+    weighted = qp.weighted_gamma.T  # Gamma' Qbar, (N m, (N+1) n)
+    Vx = -np.linalg.solve(qp.hessian, weighted @ qp.phi)
+    Vc = -np.linalg.solve(qp.hessian, weighted @ qp.psi)
+    return AgentResponse(Zx=(qp.phi + qp.gamma @ Vx)[n:], Zc=(qp.psi + qp.gamma @ Vc)[n:], Vx=Vx, Vc=Vc)
 
 
 def response_map(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray,
