@@ -28,13 +28,13 @@ from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 import dmpc
-from dmpc.setup import prepare
 from tests.helpers.closed_loop import (
     SOLVED,
     bound_excess,
     cost_decrease,
     cost_weights,
     dense_block_diag,
+    designed,
     fallback_steps,
     plan_cost,
     read_steps,
@@ -97,19 +97,6 @@ def global_model(mapping: dict) -> tuple[np.ndarray, np.ndarray]:
         A[2 * i:2 * i + 2, 2 * j:2 * j + 2] += c["A"]
         B[2 * i:2 * i + 2, j:j + 1] += c["B"]
     return A, B
-
-
-def designed(scenario):
-    """The prepared scenario, or None where its design fails: a DesignError, or a panic of Clarabel
-    in the LMI solve (see test_a_solver_panic_in_the_lmi_design_is_a_design_error)."""
-    try:
-        return prepare(scenario)
-    except dmpc.DesignError:
-        return None
-    except BaseException as exc:  # pyo3's PanicException derives from BaseException only
-        if type(exc).__name__ != "PanicException":
-            raise
-        return None
 
 
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,

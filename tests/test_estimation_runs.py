@@ -57,7 +57,15 @@ from dmpc.coordinator.estimation import Estimation
 from dmpc.runtime.inprocess import build_run
 from dmpc.scenario import Scenario, load_scenario
 from dmpc.setup import prepare
-from tests.helpers.closed_loop import SOLVED, bound_excess, fallback_steps, read_steps, scenario_bounds, statuses
+from tests.helpers.closed_loop import (
+    SOLVED,
+    bound_excess,
+    designed,
+    fallback_steps,
+    read_steps,
+    scenario_bounds,
+    statuses,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 LEVELS = ROOT / "scenarios" / "fourtank-levels.yaml"
@@ -472,20 +480,6 @@ def random_case(seed: int, factor: float, method: str, folder: Path) -> tuple[di
                    setpoints=[{"at": 0, "subsystem": f"s{i}", "y": [float(request[i])]} for i in range(2)])
     model_x_s = np.linalg.solve(np.eye(4) - A_g, B_g @ u_s)  # the model's steady state of u_s (no w)
     return mapping, request, np.concatenate([x_s, model_x_s]), C_g
-
-
-def designed(scenario: Scenario):
-    """The prepared scenario, or None where its design fails (the controller's gains, or the
-    estimator: undetectable, or the coupled estimator unstable), or Clarabel panics in the LMI
-    solve (tests/test_cooperative_properties.py)."""
-    try:
-        return prepare(scenario)
-    except dmpc.DesignError:
-        return None
-    except BaseException as exc:  # pyo3's PanicException derives from BaseException only
-        if type(exc).__name__ != "PanicException":
-            raise
-        return None
 
 
 COUPLINGS = st.one_of(st.tuples(st.just("tv-box-coop"), st.floats(1.0, 2.0)),

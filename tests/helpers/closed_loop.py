@@ -134,3 +134,15 @@ def recorded_iterates(folder: Path, names) -> tuple[np.ndarray, np.ndarray]:
 def plan_cost(z: np.ndarray, v: np.ndarray, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> float:
     """sum_{t<N} z(t)'Q z(t) + v(t)'R v(t) + z(N)'P z(N), term by term (deviation coordinates)."""
     return sum(float(z[t] @ Q @ z[t] + v[t] @ R @ v[t]) for t in range(v.shape[0])) + float(z[-1] @ P @ z[-1])
+
+
+def designed(scenario):
+    """The prepared ``scenario``, or None where its design fails (a DesignError: the gains, or the
+    estimator, undetectable or unstable when coupled; a panic of Clarabel in the LMI is one too)."""
+    import dmpc
+    from dmpc.setup import prepare
+
+    try:
+        return prepare(scenario)
+    except dmpc.DesignError:
+        return None
