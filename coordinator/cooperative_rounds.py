@@ -56,12 +56,10 @@ class CooperativeCombiner:
         self.rounds = CooperativeRounds(system, design.gains.K, design.gains.P, design.gains.P_global(),
                                         design.horizon, rule)
         self.iterate: Iterate | None = None  # the open step's, plant coordinates
-        self._steps: list[float] = []  # the open step's combination weights, per round
 
     def step_started(self, step: OpenStep, x: np.ndarray, terminal: TerminalState) -> None:
         """The open step begins at the measured x (n,): its first iterate is the last step's shifted,
         or at k = 0 the terminal controller's rollout or the centralised QP's plan (noted)."""
-        self._steps = []
         if self.iterate is not None and step.k > 0:
             self.iterate = self.rounds.next_step(self.iterate, x, step.target)
             return
@@ -103,7 +101,6 @@ class CooperativeCombiner:
         proposals = {i: msg.v for i, msg in closed.answers.items() if self.refusals.usable(i, msg)}
         done = self.rounds.combine(self.iterate, proposals, step.target, closed.terminal.alpha, closed.terminal.beta)
         self.iterate = done.iterate
-        self._steps.append(done.step)
         first = step.k == 0
         rounds_allowed = self.options.initial_rounds if first else self.options.rounds
         tolerance = self.options.initial_tolerance if first else self.options.tolerance
@@ -140,8 +137,3 @@ class CooperativeCombiner:
                                     reason=reason, solve_time=solve_time, qp_iterations=iterations,
                                     latency=step.latency(i), z=part.z, v=part.v, plan=plan))
         return agents
-
-    @property
-    def step_weights(self) -> list[float]:
-        """The weight s each round of the open step took every proposal with (0: nothing moved)."""
-        return list(self._steps)

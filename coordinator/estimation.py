@@ -56,7 +56,6 @@ class Estimation:
         self.noise = noise
         self.observer = Observer(design)
         self._C = design.model.C
-        self.last: Estimate | None = None
 
     def measure(self, k: int, x: np.ndarray) -> np.ndarray:
         """The outputs y(k) = C x(k) (+ v(k)) of step ``k`` from the plant's state ``x`` (n,), shape (p,)."""
@@ -67,6 +66,5 @@ class Estimation:
         """The estimate of step ``k`` from ``u_previous``, the inputs of step k - 1 (m,) (None at
         k = 0), and the outputs ``y`` = y(k) (p,)."""
         x_hat, d_hat = self.observer.update(u_previous, y)
-        self.last = Estimate(np.array(y, dtype=float), np.array(x_hat, dtype=float), np.array(d_hat, dtype=float),
-                             float(np.max(np.abs(self.observer.innovation), initial=0.0)))
-        return self.last
+        return Estimate(np.array(y, dtype=float), np.array(x_hat, dtype=float), np.array(d_hat, dtype=float),
+                        float(np.max(np.abs(self.observer.innovation), initial=0.0)))

@@ -65,14 +65,3 @@ def input_reach(system: CoupledSystem, horizon: int) -> tuple[tuple[int, ...], .
         reach.append(tuple(int(j) for j in np.flatnonzero(reached)))
     return tuple(reach)
 
-
-def input_driven(system: CoupledSystem) -> bool:
-    """True if some subsystem's inputs drive another subsystem's states directly (B_ij != 0, i != j).
-
-    Parameters
-    ----------
-    system : CoupledSystem
-        Its couplings' B_ij are looked at (:func:`structure`).
-    """
-    _, inputs = structure(system)
-    return bool((inputs & ~np.eye(system.M, dtype=bool)).any())

@@ -162,25 +162,3 @@ class CooperativeRounds:
             z, v = iterate.z[:, system.xs(i)], iterate.v[:, system.us(i)]
             parts.append(AgentPart(z=z, v=v, u=v[0], eta=z[-1], cost=float(costs[i])))
         return parts
-
-    def excess(self, iterate: Iterate, target: Target, alpha: np.ndarray, beta: float) -> float:
-        """How far the iterate (plant coordinates) leaves the centralised problem's rows (0: feasible).
-
-        Parameters
-        ----------
-        iterate : Iterate
-            Plant coordinates.
-        target : Target
-            The step's target (x_s, u_s) the rows are taken around.
-        alpha : ndarray, shape (n,)
-            The terminal box centre (deviation coordinates).
-        beta : float
-            The terminal box radius.
-
-        Returns
-        -------
-        float
-            :meth:`dmpc.cooperative.iterate.GlobalModel.excess`, relative to max(1, |bound|).
-        """
-        around = Iterate(iterate.z - target.x, iterate.v - target.u)
-        return self.model.excess(around, target.x, target.u, alpha, beta)
