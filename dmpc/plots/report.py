@@ -22,6 +22,10 @@ request changed (faint vertical lines); its terminal boxes in figure 1 lie aroun
 - ``fig5_S.png``: S(x(k)) = sum_i ||x_i(k)||^2 / |N_i|.
 - ``fig6_solves.png`` (a run folder only): per step, the agents that solved their QP, kept their
   plan (an event trigger) or fell back (:mod:`dmpc.plots.solves`).
+- ``fig7_estimates.png`` (a run folder with ``estimation`` only): per subsystem the outputs measured
+  and their setpoints, the disturbance estimates, and the innovation (:mod:`dmpc.plots.estimates`).
+  Figure 2 of such a run also draws the state estimates x^ (dashed) and the outputs measured that
+  are a state alone (crosses).
 
 On a comparison folder (``comparison.json`` from ``dmpc compare``), :func:`draw_comparison`
 draws the same five figures across the methods: figure 1 sets the tv-box boxes against the
@@ -49,17 +53,20 @@ from dmpc.core.errors import InputError
 from dmpc.core.quantities import Quantity, time_axis, time_label
 from dmpc.core.system import box_hull
 from dmpc.methods import DEFAULT_METHOD, METHOD_NAMES
+from dmpc.plots.estimates import draw_state_estimates, estimates_figure
 from dmpc.plots.solves import Solves, solves_figure
 from dmpc.plots.style import bound_lines, panel_grid, positive, use_log
 from dmpc.plots.targets import Tracked, draw_targets, mark_changes, unique_legend
 from dmpc.records.files import COMPARISON
-from dmpc.records.reader import RunFolderNotReadable, read_run, tracking_arrays
+from dmpc.records.reader import Estimates, RunFolderNotReadable, read_run, tracking_arrays
 
 FIGURES = ("fig1_terminal_sets", "fig2_states", "fig3_inputs", "fig4_cost", "fig5_S")
 """The paper's figures: those of a comparison folder."""
 SOLVES_FIGURE = "fig6_solves"
 RUN_FIGURES = FIGURES + (SOLVES_FIGURE,)
 """The figures of a run folder."""
+ESTIMATES_FIGURE = "fig7_estimates"
+"""The figure a run folder with ``estimation`` adds to :data:`RUN_FIGURES`."""
 MAX_PANELS = 8
 DPI = 120
 
@@ -114,6 +121,9 @@ class RunData:
         The setpoints requested and the targets applied; None when the run requested nothing.
     solves : Solves or None
         What each agent did at each step: solved, kept its plan or fell back.
+    estimates : Estimates or None
+        With ``estimation``: the outputs measured, the state and disturbance estimates; None
+        without.
     """
 
     path: Path
@@ -137,6 +147,7 @@ class RunData:
     dt: float | None = None
     tracked: Tracked | None = None
     solves: Solves | None = None
+    estimates: Estimates | None = None
 
     @property
     def time_label(self) -> str:
@@ -270,7 +281,7 @@ def load_run(path, notes: list[str] | None = None) -> RunData:
                    J=_series(arrays, "J", steps, summary.get("J")),
                    S=_series(arrays, "S", x.shape[0], summary.get("S")),
                    states=[states[name] for name in names], inputs=[inputs[name] for name in names],
-                   dt=records.dt, tracked=tracked, solves=solves)
+                   dt=records.dt, tracked=tracked, solves=solves, estimates=records.estimates(notes))
 
 
 def _trigger(scenario, arrays: dict) -> str:
@@ -626,6 +637,8 @@ def _signal_panel(ax, runs: list[tuple[RunData, str]], i: int, j: int, kind: str
         ax.plot(run.times(series.size), series, label=method, **style, **draw)
     if len(runs) == 1 and runs[0][0].tracked is not None:
         _panel_targets(ax, runs[0][0], i, j, kind)
+    if len(runs) == 1 and kind == "x":
+        draw_state_estimates(ax, runs[0][0], i, j)
 
 
 def _panel_targets(ax, run: RunData, i: int, j: int, kind: str) -> None:
@@ -664,7 +677,8 @@ def _signal_figure(plt, runs: list[tuple[RunData, str]], kind: str, title: str, 
                            sharex=True)
     slots = sorted(((i, j) for i in range(shown) for j in range(dims[i])), key=lambda slot: index[slot])
     full = ref.n if kind == "x" else ref.m
-    tracked = len(runs) == 1 and ref.tracked is not None  # one legend below, for the targets' lines too
+    # one legend below, for the targets' and the estimates' lines too
+    tracked = len(runs) == 1 and (ref.tracked is not None or (kind == "x" and ref.estimates is not None))
     legend_done = False
     for ax, (i, j) in zip(axes, slots):
         _signal_panel(ax, runs, i, j, kind)
@@ -719,7 +733,8 @@ def _cost_label(method: str, entry: dict) -> str:
 
 # ----------------------------------------------------------------------------- entry points
 def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path]:
-    """Draw the six figures of one run folder (:data:`RUN_FIGURES`).
+    """Draw the six figures of one run folder (:data:`RUN_FIGURES`), and with ``estimation`` a seventh
+    (:data:`ESTIMATES_FIGURE`).
 
     Parameters
     ----------
@@ -733,7 +748,7 @@ def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path
     Returns
     -------
     list of Path
-        The six files, in figure order.
+        The six (seven) files, in figure order.
     """
     run = load_run(run_dir, notes)
     folder = Path(fig_dir) if fig_dir is not None else run.path / "figures"
@@ -753,6 +768,9 @@ def draw_run(run_dir, fig_dir=None, notes: list[str] | None = None) -> list[Path
                                           "$S(x(k)) = \\sum_i \\|x_i(k)\\|^2 / |N_i|$", f"{head}: S(x(k))", run),
                            folder, FIGURES[4]))
         paths.append(_save(_solves(plt, run, f"{head}: agents solving per step"), folder, SOLVES_FIGURE))
+        if run.estimates is not None:
+            paths.append(_save(estimates_figure(plt, run, f"{head}: outputs measured and disturbance estimates"
+                                                + _panel_note(run.M), _shown(run.M)), folder, ESTIMATES_FIGURE))
     return paths
 
 
@@ -855,7 +873,8 @@ def draw(path, fig_dir=None, notes: list[str] | None = None) -> list[Path]:
     Returns
     -------
     list of Path
-        The files, in figure order: six for a run folder, five for a comparison folder.
+        The files, in figure order: six for a run folder (seven with ``estimation``), five for a
+        comparison folder.
     """
     path = Path(path)
     if not path.exists():

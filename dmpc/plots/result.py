@@ -3,8 +3,9 @@
 Drawn by the same code as ``dmpc report`` (:mod:`dmpc.plots.report`): axes in seconds when the
 scenario has ``dt`` (else steps), labelled with the quantities' names and units, the bounds
 dashed; with setpoints, the targets applied dashed, the setpoints dotted and the steps where they
-changed marked on the cost. The figures are made with pyplot, so a notebook shows them; a script
-saves them with ``fig.savefig``.
+changed marked on the cost; with estimation, the state estimates dashed beside the states and a
+figure of the outputs measured, the disturbance estimates and the innovation. The figures are made
+with pyplot, so a notebook shows them; a script saves them with ``fig.savefig``.
 """
 from __future__ import annotations
 
@@ -13,8 +14,19 @@ from typing import Any, cast
 
 import numpy as np
 
-from dmpc.plots.report import STYLE, RunData, _series_figure, _signal_figure, _style, setpoint_changes
+from dmpc.plots.estimates import estimates_figure
+from dmpc.plots.report import (
+    STYLE,
+    RunData,
+    _panel_note,
+    _series_figure,
+    _shown,
+    _signal_figure,
+    _style,
+    setpoint_changes,
+)
 from dmpc.plots.targets import Tracked
+from dmpc.records.reader import Estimates
 
 TRACKING = ("setpoint", "setpoint_u", "reference", "reference_u", "target", "target_u")
 
@@ -35,7 +47,8 @@ def run_data(result) -> RunData:
                    u=np.hstack([result.u[name] for name in names]),
                    alpha=np.hstack([result.alpha[name] for name in names]), beta=np.asarray(result.beta, float),
                    r=None, J=np.asarray(result.J, float), S=S if S.shape == (x.shape[0],) else np.full(x.shape[0], np.nan),
-                   states=states, inputs=inputs, dt=result.dt, tracked=tracked_of(result))
+                   states=states, inputs=inputs, dt=result.dt, tracked=tracked_of(result),
+                   estimates=estimates_of(result))
 
 
 def tracked_of(result) -> Tracked | None:
@@ -48,9 +61,39 @@ def tracked_of(result) -> Tracked | None:
     return Tracked.of({key: np.hstack([mapping[name] for name in names]) for key, mapping in mappings.items()})
 
 
+def estimates_of(result) -> Estimates | None:
+    """What the controllers of a run saw, stacked over its subsystems (as trajectory.npz holds it).
+
+    Parameters
+    ----------
+    result : dmpc.Result
+
+    Returns
+    -------
+    Estimates or None
+        None for a run without estimation.
+    """
+    names = list(result.names)
+    if not all(name in result.x_hat for name in names):
+        return None
+    steps = result.innovation.shape[0]
+    p = [result.y[name].shape[1] for name in names]
+    asked = result.setpoint_y if all(name in result.setpoint_y for name in names) else {
+        name: np.full((steps, size), np.nan) for name, size in zip(names, p)}
+    return Estimates(y=np.hstack([result.y[name] for name in names]),
+                     x_hat=np.hstack([result.x_hat[name] for name in names]),
+                     d_hat=np.hstack([result.d_hat[name] for name in names]),
+                     innovation=np.asarray(result.innovation, float),
+                     setpoint_y=np.hstack([asked[name] for name in names]), p=p,
+                     nd=[result.d_hat[name].shape[1] for name in names],
+                     outputs=[result.outputs[name] for name in names],
+                     disturbances=[result.disturbances[name] for name in names],
+                     C=[result.C[name] for name in names] if all(name in result.C for name in names) else None)
+
+
 def plot_result(result, bounds: bool = True) -> dict:
-    """``{"states": Figure, "inputs": Figure, "cost": Figure}`` for the Result ``result``; ``bounds``:
-    the constraint bounds drawn as dashed lines."""
+    """``{"states": Figure, "inputs": Figure, "cost": Figure}`` for the Result ``result``, and with
+    estimation ``"estimates"``; ``bounds``: the constraint bounds drawn as dashed lines."""
     import matplotlib
     import matplotlib.pyplot as plt
 
@@ -63,6 +106,9 @@ def plot_result(result, bounds: bool = True) -> dict:
                                           "$J(k) = \\sum_i J_i^*(k)$",
                                           f"cost, closed loop {result.cost:.4g} (verdict {result.verdict})", run,
                                           setpoint_changes(run))}
+        if run.estimates is not None:
+            figures["estimates"] = estimates_figure(plt, run, f"{head}: outputs measured and disturbance estimates"
+                                                    + _panel_note(run.M), _shown(run.M))
         interactive = matplotlib.is_interactive()
     # a backend loaded by the first figure (a notebook's) may have turned interactive mode on, which
     # the context would undo on leaving: a notebook would then show no later call's figures

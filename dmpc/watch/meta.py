@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dmpc.core.quantities import quantities
+from dmpc.core.quantities import default_quantities, quantities
 from dmpc.core.system import box_hull
+from dmpc.records.reader import disturbance_quantities, measured_states, output_quantities
 
 META_VERSION = 1
 
@@ -39,6 +40,30 @@ def _labels(prepared) -> dict[str, tuple[list, list]]:
             for name in states}
 
 
+def _estimation(prepared) -> list[dict] | None:
+    """Per subsystem, the names and units of its outputs and disturbances and the state each output
+    measures alone (None where it measures a combination); None without ``estimation``."""
+    estimator = getattr(prepared, "estimator", None)
+    if estimator is None:
+        return None
+    system = prepared.system
+    names = [s.name for s in system.subsystems]
+    specs = prepared.scenario.resolved_subsystems() if prepared.scenario is not None else None
+    if prepared.scenario is not None:
+        inputs = quantities(prepared.scenario)[1]
+    else:
+        inputs = default_quantities(names, [s.m for s in system.subsystems], "u")
+    out = []
+    for i, part in enumerate(estimator.model.parts):
+        outputs = output_quantities(specs[i] if specs is not None else None, part.p)
+        measured = measured_states(part.C)
+        out.append({"outputs": [[q.name, q.unit] for q in outputs],
+                    "disturbances": [[q.name, q.unit] for q in
+                                     disturbance_quantities(part.kind, outputs, inputs[names[i]], part.nd)],
+                    "measures": [measured.get(r) for r in range(part.p)]})
+    return out
+
+
 def meta_json(prepared, run_id: str) -> dict:
     """The run's description for observers, JSON-ready.
 
@@ -54,13 +79,16 @@ def meta_json(prepared, run_id: str) -> dict:
         ``horizon``, ``digest``, ``subsystems`` (name, n, m, raw input and state sets, and the
         ``[name, unit]`` of each state and input where the scenario names them),
         ``edges`` (undirected pairs of names), ``faults`` (default and per directed link) and
-        ``trigger`` (``options.trigger``: ``always`` or ``event``).
+        ``trigger`` (``options.trigger``: ``always`` or ``event``). With ``estimation`` also
+        ``estimation`` (true) and per subsystem ``outputs`` and ``disturbances`` (``[name, unit]``
+        of each) and ``measures`` (per output, the state it is alone, or None).
     """
     system = prepared.system
     names = [s.name for s in system.subsystems]
     faults = prepared.faults
     labels = _labels(prepared)
-    return {
+    estimation = _estimation(prepared)
+    data = {
         "meta_version": META_VERSION,
         "run_id": run_id,
         "scenario": prepared.name,
@@ -79,6 +107,11 @@ def meta_json(prepared, run_id: str) -> dict:
                    "links": [{"source": s, "target": r, **vars(f)} for s, r, f in faults.links]},
         "trigger": prepared.trigger.mode,
     }
+    if estimation is not None:
+        data["estimation"] = True
+        for entry, extra in zip(data["subsystems"], estimation):
+            entry.update(extra)
+    return data
 
 
 @dataclass(frozen=True)
@@ -96,6 +129,10 @@ class SubsystemMeta:
         Per-coordinate bounds (the bounding box of a polytope); ``nan`` where unbounded.
     input_is_box : bool
         False when the input bounds are a polytope's bounding box.
+    output_names, output_units, disturbance_names, disturbance_units : tuple of str
+        With estimation: the outputs measured and the disturbances estimated (empty without).
+    measures : tuple of int or None
+        With estimation, per output: the state it measures alone, None where it is a combination.
     """
 
     name: str
@@ -108,6 +145,11 @@ class SubsystemMeta:
     input_is_box: bool = True
     state_units: tuple[str, ...] = ()
     input_units: tuple[str, ...] = ()
+    output_names: tuple[str, ...] = ()
+    output_units: tuple[str, ...] = ()
+    disturbance_names: tuple[str, ...] = ()
+    disturbance_units: tuple[str, ...] = ()
+    measures: tuple[int | None, ...] = ()
 
     @staticmethod
     def _label(name: str, unit: str) -> str:
@@ -120,6 +162,24 @@ class SubsystemMeta:
     def input_label(self, j: int) -> str:
         """``name [unit]`` of input j."""
         return self._label(self.input_names[j], self.input_units[j] if self.input_units else "")
+
+    def output_label(self, r: int) -> str:
+        """``name [unit]`` of output r."""
+        return self._label(self.output_names[r], self.output_units[r] if self.output_units else "")
+
+    def disturbance_label(self, r: int) -> str:
+        """``name [unit]`` of disturbance r."""
+        return self._label(self.disturbance_names[r], self.disturbance_units[r] if self.disturbance_units else "")
+
+    @property
+    def p(self) -> int:
+        """Outputs measured (0 without estimation)."""
+        return len(self.output_names)
+
+    @property
+    def nd(self) -> int:
+        """Disturbances estimated (0 without estimation)."""
+        return len(self.disturbance_names)
 
     @property
     def n(self) -> int:
@@ -152,7 +212,9 @@ class RunMeta:
     faults : dict
         ``default`` and per directed link (``links``): delay, jitter and loss.
     trigger : str
-        ``options.trigger``: ``always`` or ``event``."""
+        ``options.trigger``: ``always`` or ``event``.
+    estimation : bool
+        The controllers work from estimates: the steps carry ``y``, ``x_hat`` and ``d_hat``."""
 
     run_id: str
     scenario: str
@@ -167,6 +229,7 @@ class RunMeta:
     edges: tuple[tuple[str, str], ...]
     faults: dict
     trigger: str = "always"
+    estimation: bool = False
 
     @property
     def names(self) -> list[str]:
@@ -183,6 +246,14 @@ class RunMeta:
     def input_slices(self) -> list[slice]:
         """Each subsystem's block of the global input vector."""
         return _slices([s.m for s in self.subsystems])
+
+    def output_slices(self) -> list[slice]:
+        """Each subsystem's block of the global output vector y (with estimation)."""
+        return _slices([s.p for s in self.subsystems])
+
+    def disturbance_slices(self) -> list[slice]:
+        """Each subsystem's block of the global disturbance estimate d^ (with estimation)."""
+        return _slices([s.nd for s in self.subsystems])
 
     def link_fault(self, source: str, target: str) -> dict:
         """Delay, jitter and loss configured on the directed link ``source -> target``."""
@@ -209,7 +280,8 @@ class RunMeta:
                        deadline=None if data["deadline"] is None else float(data["deadline"]),
                        steps=int(data["steps"]), horizon=int(data["horizon"]), digest=str(data["digest"]),
                        subsystems=subsystems, edges=tuple((str(a), str(b)) for a, b in data["edges"]),
-                       faults=dict(data.get("faults") or {}), trigger=str(data.get("trigger") or "always"))
+                       faults=dict(data.get("faults") or {}), trigger=str(data.get("trigger") or "always"),
+                       estimation=bool(data.get("estimation")))
         except (KeyError, TypeError, IndexError) as exc:
             raise ValueError(f"not a run description ({type(exc).__name__}: {exc})") from None
 
@@ -225,10 +297,18 @@ def _subsystem(data: dict) -> SubsystemMeta:
     input_lower, input_upper, is_box = _bounds(data["input"], m)
     state_names, state_units = _names(data.get("states"), n, "x")
     input_names, input_units = _names(data.get("inputs"), m, "u")
+    outputs, disturbances = data.get("outputs") or [], data.get("disturbances") or []
+    output_names, output_units = _names(outputs, len(outputs), "y")
+    disturbance_names, disturbance_units = _names(disturbances, len(disturbances), "d")
+    measures = list(data.get("measures") or [None] * len(outputs))
+    if len(measures) != len(outputs):
+        raise ValueError(f"subsystem {data['name']}: {len(measures)} entries of 'measures' for {len(outputs)} outputs")
     return SubsystemMeta(name=str(data["name"]), state_names=state_names, input_names=input_names,
                          state_lower=state_lower, state_upper=state_upper, input_lower=input_lower,
                          input_upper=input_upper, input_is_box=is_box, state_units=state_units,
-                         input_units=input_units)
+                         input_units=input_units, output_names=output_names, output_units=output_units,
+                         disturbance_names=disturbance_names, disturbance_units=disturbance_units,
+                         measures=tuple(None if j is None or not 0 <= int(j) < n else int(j) for j in measures))
 
 
 def _names(labels: list | None, dim: int, prefix: str) -> tuple[tuple[str, ...], tuple[str, ...]]:

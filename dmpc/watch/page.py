@@ -11,6 +11,11 @@ Once a step arrives with targets (the run tracks setpoints), each subsystem's st
 plots show the target applied (dashed) and the setpoint requested (dotted, where not free), each
 in its component's colour; before that, and in a run without setpoints, those lines and their
 legend entries stay hidden.
+
+In a run with ``estimation`` each subsystem's state plot also shows the estimates x^ the
+controllers worked from (dashed, thinner) and the outputs measured that are a state alone
+(crosses); a plot beside it the disturbance estimates d^, and one more the outputs that measure
+a combination of states, where there are any. A run without estimation has none of these plots.
 """
 from __future__ import annotations
 
@@ -54,6 +59,10 @@ BOUND = dict(line_color="#d62728", line_dash="dashed", line_width=1.5)
 SIGNAL_HEIGHT = 255  # a subsystem's plots: their legend takes a row below
 TARGET = dict(line_dash="dashed", line_width=1.5)
 SETPOINT = dict(line_dash="dotted", line_width=3, line_alpha=0.9)
+ESTIMATE: dict[str, Any] = dict(line_dash=[7, 4], line_width=1.5, line_alpha=0.85)
+"""x^ beside the state: dashed, thinner than the state's line and in its colour."""
+MEASURED: dict[str, Any] = dict(marker="x", size=7, line_width=1.5, alpha=0.8)
+"""The outputs measured: crosses."""
 TABLES = """
 table.dmpc-agents, table.dmpc-readout, .dmpc-summary table {border-collapse: collapse; font-size: 10pt}
 table.dmpc-agents td, table.dmpc-agents th {border-bottom: 1px solid #ddd; padding: 3px 10px; text-align: left}
@@ -138,7 +147,9 @@ class WatchPage:
         tables = InlineStyleSheet(css=TABLES)
         scroll: dict[str, str | None] = {"overflow-y": "auto"}
         rows = min(meta.M, SHOWN)
-        self.readout = Div(name="readout", width=700, height=50 + 22 * rows, stylesheets=[tables], styles=scroll)
+        # with estimation, more columns: wider, and rows of two lines
+        self.readout = Div(name="readout", width=950 if meta.estimation else 700,
+                           height=50 + (46 if meta.estimation else 22) * rows, stylesheets=[tables], styles=scroll)
         self.summary = Div(name="summary", width=600, stylesheets=[tables])  # changes once, at the end
         self.cursors: list[Span] = []
         steps = ColumnDataSource({"k": [0, max(meta.steps, 1)]}, name="step-range")
@@ -189,7 +200,9 @@ class WatchPage:
         self.states: list[ColumnDataSource] = []
         self.inputs: list[ColumnDataSource] = []
         self.targets: list[ColumnDataSource] = []
+        self.estimates: list[ColumnDataSource] = []  # a run with estimation only
         panels = []
+        rows_of_panels: list[list] = []
         for i, sub in enumerate(meta.subsystems[:SHOWN]):
             # columns x1 … and u1 … whatever the scenario calls them: its names go in the legends
             states = ColumnDataSource({"k": [], **{f"x{j + 1}": [] for j in range(sub.n)}}, name=f"states-{sub.name}")
@@ -216,9 +229,13 @@ class WatchPage:
             self.targets.append(targets)
             self._target_lines(fig_x, targets, i, "x", sub.n)
             self._target_lines(fig_u, targets, i, "u", sub.m)
-            for fig in (fig_x, fig_u):
+            extra = self._estimate_plots(fig_x, sub, x_range) if meta.estimation else []
+            for fig in (fig_x, fig_u, *extra):
                 _legend_below(fig)
-            panels += [fig_x, fig_u]
+            if meta.estimation:  # its states, targets, estimates and outputs: the legend in two rows
+                fig_x.legend[0].nrows = 2
+            panels += [fig_x, fig_u, *extra]
+            rows_of_panels.append([fig_x, fig_u, *extra])
         for fig in [fig_cost, fig_terminal] + panels:
             cursor = Span(location=0, dimension="height", line_color="#555555", line_dash="dotted", visible=False)
             fig.add_layout(cursor)
@@ -229,9 +246,49 @@ class WatchPage:
             row(self.readout, self.summary),
             row(fig_cost, fig_terminal, fig_graph),
             self.agents,
-            gridplot([*panels], ncols=4, toolbar_location="right", merge_tools=True),
+            self._grid(panels, rows_of_panels),
         ]
         self.built = True
+
+    def _grid(self, panels: list, rows: list[list]):
+        """The subsystems' plots: four to a row; with estimation a row per subsystem (its states,
+        inputs, disturbance estimates and other outputs)."""
+        if not self.meta.estimation:
+            return gridplot([*panels], ncols=4, toolbar_location="right", merge_tools=True)
+        width = max((len(r) for r in rows), default=0)
+        return gridplot([r + [None] * (width - len(r)) for r in rows], toolbar_location="right", merge_tools=True)
+
+    def _estimate_plots(self, fig_x, sub, x_range: Range1d) -> list:
+        """A run with estimation: subsystem ``sub``'s estimates x^ (dashed) and the outputs measured
+        that are a state alone (crosses) on its state plot ``fig_x``; returns its plot of the
+        disturbance estimates d^ and, where some outputs measure a combination of states, a plot of
+        those."""
+        source = ColumnDataSource(self._estimate_columns([], sub, 0, 0, 0), name=f"estimates-{sub.name}")
+        self.estimates.append(source)
+        for j in range(sub.n):
+            fig_x.line("k", f"xhat{j + 1}", source=source, color=Category10_10[j % 10], legend_label="estimate x̂",
+                       name=f"estimate-{sub.name}-{j + 1}", **ESTIMATE)
+        others = []
+        for r, state in enumerate(sub.measures):
+            if state is None:
+                others.append(r)
+                continue
+            fig_x.scatter("k", f"y{r + 1}", source=source, color=Category10_10[state % 10], legend_label="measured y",
+                          name=f"measured-{sub.name}-{r + 1}", **MEASURED)
+        fig_d = _figure(f"subsystem {sub.name}: disturbances d̂(k)", x_range, height=SIGNAL_HEIGHT)
+        fig_d.name = f"disturbances-{sub.name}"
+        for r in range(sub.nd):
+            fig_d.line("k", f"d{r + 1}", source=source, color=Category10_10[r % 10], line_width=2,
+                       legend_label=sub.disturbance_label(r))
+        plots = [fig_d]
+        if others:
+            fig_y = _figure(f"subsystem {sub.name}: outputs y(k)", x_range, height=SIGNAL_HEIGHT)
+            fig_y.name = f"outputs-{sub.name}"
+            for r in others:
+                fig_y.scatter("k", f"y{r + 1}", source=source, color=Category10_10[r % 10],
+                              legend_label=sub.output_label(r), **MEASURED)
+            plots.append(fig_y)
+        return plots
 
     def _target_lines(self, fig, source: ColumnDataSource, i: int, kind: str, count: int) -> None:
         """The target (dashed) and setpoint (dotted) of each component of subsystem ``i``, held over
@@ -274,12 +331,34 @@ class WatchPage:
             for j in range(sub.m):
                 data[f"u{j + 1}"] = [r.u[us.start + j] for r in rows]
             out.append(data)
-        return out + (self._targets_columns(rows) if self.tracked else [])
+        out += self._targets_columns(rows) if self.tracked else []
+        return out + self._estimates_columns(rows)
 
     def _targets_columns(self, rows: list[StepRow]) -> list[dict]:
         """Data for each subsystem's targets and setpoints."""
         return [self._target_columns(rows, sub, xs.start, us.start)
                 for sub, xs, us in zip(self.meta.subsystems[:SHOWN], self.meta.state_slices(), self.meta.input_slices())]
+
+    def _estimates_columns(self, rows: list[StepRow]) -> list[dict]:
+        """Data for each subsystem's estimates and outputs measured (none without estimation)."""
+        if not self.estimates:
+            return []
+        meta = self.meta
+        return [self._estimate_columns(rows, sub, xs.start, ys.start, ds.start)
+                for sub, xs, ys, ds in zip(meta.subsystems[:SHOWN], meta.state_slices(), meta.output_slices(),
+                                           meta.disturbance_slices())]
+
+    @staticmethod
+    def _estimate_columns(rows: list[StepRow], sub, x0: int, y0: int, d0: int) -> dict[str, list]:
+        """One subsystem's estimates x^ (``xhat1`` ...), outputs measured (``y1`` ...) and disturbance
+        estimates (``d1`` ...) over ``rows`` (NaN in a step without them); its states start at column
+        ``x0`` of the global state, its outputs at ``y0``, its disturbances at ``d0``."""
+        data: dict[str, list] = {"k": [r.k for r in rows]}
+        for prefix, what, count, start in (("xhat", "x_hat", sub.n, x0), ("y", "y", sub.p, y0),
+                                           ("d", "d_hat", sub.nd, d0)):
+            for j in range(count):
+                data[f"{prefix}{j + 1}"] = [_estimate_value(r, what, start + j) for r in rows]
+        return data
 
     @staticmethod
     def _target_columns(rows: list[StepRow], sub, x0: int, u0: int) -> dict[str, list]:
@@ -389,7 +468,7 @@ class WatchPage:
         n_steps = bisect.bisect_right(self.step_ks, k)
         self.shown_states = self._sync([self.terminal] + self.states, self.state_rows, self.shown_states, n_states,
                                        self._state_columns)
-        step_sources = [self.cost] + self.inputs + (self.targets if self.tracked else [])
+        step_sources = [self.cost] + self.inputs + (self.targets if self.tracked else []) + self.estimates
         self.shown_steps = self._sync(step_sources, self.step_rows, self.shown_steps, n_steps, self._step_columns)
         for cursor in self.cursors:
             cursor.location = k
@@ -500,6 +579,16 @@ def _target_value(row: StepRow, what: str, kind: str, column: int) -> float:
     values = {("target", "x"): t.x, ("target", "u"): t.u, ("setpoint", "x"): t.setpoint,
               ("setpoint", "u"): t.setpoint_u}[what, kind]
     return values[column]
+
+
+def _estimate_value(row: StepRow, what: str, column: int) -> float:
+    """Component ``column`` of a step's ``x_hat``, ``y`` or ``d_hat`` (``what``); NaN in a step
+    without estimates."""
+    e = row.estimate
+    if e is None:
+        return math.nan
+    values = {"x_hat": e.x_hat, "y": e.y, "d_hat": e.d_hat}[what]
+    return values[column] if column < len(values) else math.nan
 
 
 def _set(model, attr: str, value) -> None:

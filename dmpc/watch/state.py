@@ -55,13 +55,37 @@ class Targets:
 
 
 @dataclass(frozen=True)
+class Estimate:
+    """What the controllers saw of step k in a run with ``estimation`` (docs/algorithm.md,
+    "Offset-free tracking").
+
+    Attributes
+    ----------
+    y : list of float
+        The outputs the plant measured, y(k) (p,).
+    x_hat : list of float
+        The state estimate x^(k|k) the controllers worked from (n,).
+    d_hat : list of float
+        The disturbance estimate d^(k|k) (n_d,).
+    innovation : float
+        ||y(k) - C x^(k|k-1) - C_d d^(k|k-1)||_inf."""
+
+    y: list[float]
+    x_hat: list[float]
+    d_hat: list[float]
+    innovation: float
+
+
+@dataclass(frozen=True)
 class StepRow:
     """What happened in step k (the fields of a ``steps.jsonl`` line that the page shows).
 
     ``targets`` is None in a step before anything was requested (and in every step of a run
     without setpoints), whose line has no targets. ``solve_reason`` (M,) says, with an event
     trigger, why each agent solved ("" where it kept its plan or solved in a step of several
-    rounds); None without a trigger. ``rounds`` counts the step's Jacobi rounds.
+    rounds); None without a trigger. ``rounds`` counts the step's Jacobi rounds. ``estimate`` is
+    what the controllers saw (the outputs measured, the state and disturbance estimates) in a run
+    with ``estimation``; None without.
 
     Attributes
     ----------
@@ -91,6 +115,7 @@ class StepRow:
     targets: Targets | None = None
     rounds: int = 1
     solve_reason: list[str] | None = None
+    estimate: Estimate | None = None
 
 
 class BadStep(DmpcError, ValueError):
@@ -103,6 +128,15 @@ def parse_targets(line: dict) -> Targets | None:
         return None
     return Targets(x=floats(line["target"]), u=floats(line["target_u"]), setpoint=floats(line["setpoint"]),
                    setpoint_u=floats(line["setpoint_u"]))
+
+
+def parse_estimate(line: dict) -> Estimate | None:
+    """The outputs measured and the estimates of a ``steps.jsonl`` line, None when it has none (a run
+    without ``estimation``)."""
+    if "x_hat" not in line:
+        return None
+    return Estimate(y=floats(line["y"]), x_hat=floats(line["x_hat"]), d_hat=floats(line["d_hat"]),
+                    innovation=number(line.get("innovation")))
 
 
 def _reasons(line: dict) -> list[str] | None:
@@ -129,7 +163,7 @@ def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, Sta
                        solve_time=floats(line["solve_time"]), latency=floats(line.get("latency") or []),
                        step_time=number(line.get("step_time")), note=str(line.get("note") or ""),
                        targets=parse_targets(line), rounds=int(line.get("rounds") or 1),
-                       solve_reason=_reasons(line))
+                       solve_reason=_reasons(line), estimate=parse_estimate(line))
         now = StateRow(k, floats(line["x"]), floats(line["alpha"]), number(line["beta"]))
         nxt = StateRow(k + 1, floats(line["x_next"]), floats(line["alpha_next"]), number(line["beta_next"]))
     except (KeyError, TypeError, ValueError) as exc:
@@ -148,6 +182,11 @@ def parse_step(line: dict, meta: RunMeta | None) -> tuple[StepRow, StateRow, Sta
             sizes.update({"target": len(t.x), "setpoint": len(t.setpoint), "target_u": len(t.u),
                           "setpoint_u": len(t.setpoint_u)})
             want.update({"target": n, "setpoint": n, "target_u": m, "setpoint_u": m})
+        if step.estimate is not None and meta.estimation:
+            e = step.estimate
+            sizes.update({"y": len(e.y), "x_hat": len(e.x_hat), "d_hat": len(e.d_hat)})
+            want.update({"y": sum(s.p for s in meta.subsystems), "x_hat": n,
+                         "d_hat": sum(s.nd for s in meta.subsystems)})
         wrong = [key for key in sizes if sizes[key] != want[key]]
         if wrong:
             raise BadStep(f"step {k}: {wrong[0]} has {sizes[wrong[0]]} entries, the run {want[wrong[0]]}")

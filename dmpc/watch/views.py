@@ -297,16 +297,22 @@ def readout_html(meta: RunMeta, row: StateRow | None, step: StepRow | None, show
     """The values at the shown step (its state ``row`` and ``step``; None where there is none) of the
     run ``meta``: beta(k), J(k), and x_i(k), u_i(k), alpha_i(k) of the first
     ``shown`` subsystems; with setpoints also the target x_s,i(k) applied and the setpoint (``-``
-    where free)."""
+    where free); with estimation also the innovation, and the outputs measured y_i(k) and the
+    estimates x^_i(k), d^_i(k)."""
     if row is None:
         return "<i>no step yet</i>"
     head = (f"<b>k = <span class='dmpc-readout-k'>{row.k}</span></b> &nbsp; β(k) = "
             f"<span class='dmpc-beta'>{fmt(row.beta)}</span>"
             f" &nbsp; J(k) = <span class='dmpc-J'>{fmt(step.J) if step else '-'}</span>")
     targets = step.targets if step else None
+    estimate = step.estimate if step is not None and meta.estimation else None
+    if estimate is not None:
+        head += f" &nbsp; innovation = <span class='dmpc-innovation'>{fmt(estimate.innovation)}</span>"
     extra = "<th>target x_s(k)</th><th>setpoint</th>" if targets else ""
+    extra += "<th>y(k)</th><th>x̂(k)</th><th>d̂(k)</th>" if estimate else ""
+    y_slices, d_slices = meta.output_slices(), meta.disturbance_slices()
     lines = [f"<table class='dmpc-readout'><tr><th>subsystem</th><th>x(k)</th><th>u(k)</th><th>α(k)</th>{extra}</tr>"]
-    for sub, xs, us in list(zip(meta.subsystems, meta.state_slices(), meta.input_slices()))[:shown]:
+    for i, (sub, xs, us) in enumerate(list(zip(meta.subsystems, meta.state_slices(), meta.input_slices()))[:shown]):
         x = ", ".join(fmt(v) for v in row.x[xs])
         u = ", ".join(fmt(v) for v in step.u[us]) if step else "-"
         a = ", ".join(fmt(v) for v in row.alpha[xs])
@@ -314,6 +320,10 @@ def readout_html(meta: RunMeta, row: StateRow | None, step: StepRow | None, show
         if targets:
             cells = (f"<td class='dmpc-target'>{', '.join(fmt(v) for v in targets.x[xs])}</td>"
                      f"<td class='dmpc-setpoint'>{', '.join(fmt(v) for v in targets.setpoint[xs])}</td>")
+        if estimate:
+            cells += (f"<td class='dmpc-y'>{', '.join(fmt(v) for v in estimate.y[y_slices[i]])}</td>"
+                      f"<td class='dmpc-x-hat'>{', '.join(fmt(v) for v in estimate.x_hat[xs])}</td>"
+                      f"<td class='dmpc-d-hat'>{', '.join(fmt(v) for v in estimate.d_hat[d_slices[i]])}</td>")
         lines.append(f"<tr><td>{html.escape(sub.name)}</td><td class='dmpc-x'>{x}</td><td class='dmpc-u'>{u}</td>"
                      f"<td class='dmpc-alpha'>{a}</td>{cells}</tr>")
     lines.append("</table>")
