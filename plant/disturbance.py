@@ -1,4 +1,4 @@
-"""Additive plant disturbances w(k): seeded random sequences, or a given array.
+"""Additive plant disturbances w(k): seeded random sequences, a constant step, or a given array.
 
 Pure numerics (reading a file is done by the caller, dmpc.setup.plant). A sequence is
 drawn whole before the run, so that the plant process of ``dmpc run`` and ``dmpc simulate``
@@ -35,6 +35,29 @@ def gaussian_sequence(std: np.ndarray, steps: int, seed: int) -> np.ndarray:
     shape (steps, n)."""
     std = np.asarray(std, dtype=float)
     return np.random.default_rng(seed).standard_normal(size=(steps, std.size)) * std
+
+
+def step_sequence(offset: np.ndarray, start: int, steps: int) -> np.ndarray:
+    """w(k) = ``offset`` for k >= ``start``, zeros before: a constant disturbance that sets in at
+    step ``start``.
+
+    Parameters
+    ----------
+    offset : ndarray, shape (n,)
+        The constant w added to x(k+1) from step ``start`` on.
+    start : int
+        The first step whose update it is added to (>= 0; at or past ``steps``: zeros throughout).
+    steps : int
+        The number of rows.
+
+    Returns
+    -------
+    ndarray, shape (steps, n)
+    """
+    offset = np.asarray(offset, dtype=float)
+    w = np.zeros((steps, offset.size))
+    w[max(start, 0):] = offset
+    return w
 
 
 @dataclass(frozen=True)
