@@ -249,7 +249,11 @@ def test_paper_across_namespaces_equals_simulate(procs, lab, paper_simulated, tm
         assert router_proc.poll() is None, procs.log(router_proc)
     plant = procs.start_in("plant", "plant", "scenarios/paper.yaml", "--out", str(out), "--quiet",
                            *plant_net, *common)
-    agents = [procs.start_in(f"agent{name}", "agent", "scenarios/paper.yaml", "--id", name, *agent_net, *common)
+    # --delay: every message an agent sends waits 50 ms, so the 30 lockstep steps take at least 3 s
+    # (the trajectory is the same: lockstep waits for every plan), long enough for the sampling below
+    # to see each agent's links on a machine so busy that this process waits a second for the CPU
+    agents = [procs.start_in(f"agent{name}", "agent", "scenarios/paper.yaml", "--id", name, "--delay", "50",
+                             *agent_net, *common)
               for name in AGENTS]
     # whom does each agent's host hold TCP connections with while the run starts and steps? Sampled
     # from the agents' start to the end: Zenoh may replace a link (two peers dialling each other),
@@ -298,11 +302,19 @@ def test_two_machines_each_hosting_two_agents_equal_simulate(procs, lab, paper_s
     plant = procs.start_in("plant", "plant", "scenarios/paper.yaml", "--out", str(out), "--quiet",
                            "--listen", "tcp/0.0.0.0:7447", *common)
     machines = {"agent1": ("1", "2"), "agent2": ("3", "4")}
+    # --delay 50: the 30 steps take at least 3 s (the same trajectory), for the sampling of the links below
     hosts = {role: procs.start_in(role, "agent", "scenarios/paper.yaml", *[a for n in names for a in ("--id", n)],
-                                  "--connect", plant_ep, "--report", str(tmp_path / f"{role}-{{id}}.json"), *common)
+                                  "--connect", plant_ep, "--report", str(tmp_path / f"{role}-{{id}}.json"),
+                                  "--delay", "50", *common)
              for role, names in machines.items()}
-    assert wait_for(lambda: step_lines(out) >= 1 or plant.poll() is not None, timeout=90), procs.log(plant)
     linked: dict[str, set[str]] = {role: set() for role in machines}
+
+    def stepping() -> bool:
+        for role, proc in hosts.items():
+            linked[role] |= _established_peers(proc.pid)
+        return step_lines(out) >= 1 or plant.poll() is not None
+
+    assert wait_for(stepping, timeout=90), procs.log(plant)
     deadline = time.monotonic() + 120
     while plant.poll() is None and time.monotonic() < deadline:
         for role, proc in hosts.items():
