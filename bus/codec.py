@@ -72,7 +72,7 @@ def wire_fields(cls: type) -> tuple[str, ...]:
 _FIELD_SETS: dict[type, frozenset] = {cls: frozenset(names) for cls, names in _FIELDS.items()}
 # fields a sender may leave out (added after the first release of the format); decode fills in the default
 _OPTIONAL: dict[type, frozenset] = {Ready: frozenset({"scenario", "horizon"}), Release: frozenset({"target", "kept", "iterate"}),
-                                    PlanMessage: frozenset({"reason"})}
+                                    PlanMessage: frozenset({"reason"}), State: frozenset({"y"})}
 
 
 def encode(msg: Message) -> bytes:
@@ -99,6 +99,8 @@ def encode(msg: Message) -> bytes:
         body = _setpoint_body(msg)
     elif type(msg) is SetpointAnswer:
         body = _answer_body(msg)
+    elif type(msg) is State:
+        body = _state_body(msg)
     else:
         body = {VERSION_FIELD: PROTOCOL_VERSION, "type": TYPE_NAMES[cls]}
         for field, name in zip(fields(cls), _FIELDS[cls]):
@@ -139,6 +141,12 @@ def _setpoint_body(m: Setpoint) -> dict:
     return {VERSION_FIELD: PROTOCOL_VERSION, "type": "setpoint", "run": m.run, "sender": m.sender, "id": _scalar(m.id),
             "subsystem": m.subsystem, "x": _wire_array(np.asarray(m.x, dtype=float)),
             "u": _wire_array(np.asarray(m.u, dtype=float))}
+
+
+def _state_body(m: State) -> dict:
+    # y only when given: a state that measures the whole state is what it was before outputs existed
+    return {VERSION_FIELD: PROTOCOL_VERSION, "type": "state", "run": m.run, "k": _scalar(m.k), "sender": m.sender,
+            "x": _to_wire(m.x), **({"y": _to_wire(m.y)} if m.y else {})}
 
 
 def _answer_body(m: SetpointAnswer) -> dict:
@@ -350,10 +358,10 @@ def _parse_stop(b: dict) -> Stop:
     return Stop(run=_str(b["run"], "run"), k=_int(b, "k"), reason=reason, sender=_str(b["sender"], "sender"))
 
 
-def _vectors(value, name: str, limit: int) -> dict[str, np.ndarray]:
-    """A map subsystem name -> finite float64 vector, at most ``limit`` entries."""
-    if type(value) is not dict or not value or len(value) > limit:
-        raise DecodeError(f"{name}: expected a map subsystem name -> vector, 1 to {limit} entries")
+def _vectors(value, name: str, limit: int, least: int = 1) -> dict[str, np.ndarray]:
+    """A map subsystem name -> finite float64 vector, ``least`` to ``limit`` entries."""
+    if type(value) is not dict or not least <= len(value) <= limit:
+        raise DecodeError(f"{name}: expected a map subsystem name -> vector, {least} to {limit} entries")
     return {_str(key, f"{name} key"): _array(vec, f"{name}[{key}]", 1) for key, vec in value.items()}
 
 
@@ -363,8 +371,14 @@ def _parse_inputs(b: dict) -> Inputs:
 
 
 def _parse_state(b: dict) -> State:
-    return State(run=_str(b["run"], "run"), k=_int(b, "k"), sender=_str(b["sender"], "sender"),
-                 x=_vectors(b["x"], "x", 4096))
+    if "y" not in b:
+        return State(run=_str(b["run"], "run"), k=_int(b, "k"), sender=_str(b["sender"], "sender"),
+                     x=_vectors(b["x"], "x", 4096))
+    # with outputs, the states may be none: every subsystem of the message reports its outputs
+    x, y = _vectors(b["x"], "x", 4096, least=0), _vectors(b["y"], "y", 4096)
+    if both := sorted(x.keys() & y.keys()):
+        raise DecodeError(f"subsystem {both[0]!r} is in both x and y: send its state or its outputs")
+    return State(run=_str(b["run"], "run"), k=_int(b, "k"), sender=_str(b["sender"], "sender"), x=x, y=y)
 
 
 def _parse_setpoint(b: dict) -> Setpoint:

@@ -252,7 +252,7 @@ class Inputs:
 
 @dataclass(frozen=True)
 class State:
-    """The measured state x(k) of some or all subsystems, from ``sender``.
+    """The measured state x(k) of some or all subsystems, or their measured outputs y(k), from ``sender``.
 
     A plant that measures everything sends one ``State`` per step with every subsystem; a
     sensor of subsystem I (``sender`` = ``"sensor-I"``) sends its own entry only.
@@ -267,12 +267,16 @@ class State:
         ``"plant"``, or ``"sensor-<name>"`` (the key's last chunk).
     x : dict name -> ndarray, shape (n_i,)
         Subsystem i's measured state x_i(k).
+    y : dict name -> ndarray, shape (p_i,)
+        Subsystem i's measured outputs y_i(k), in place of its state (a run with estimation only);
+        optional on the wire, left out when empty. A subsystem is in ``x`` or in ``y``, not both.
     """
 
     run: str
     k: int
     sender: str
     x: dict[str, np.ndarray]
+    y: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ given, only times the records (plan latency, step time).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from functools import partial
 
@@ -125,6 +125,10 @@ class Coordinator:
         Per agent: its plan of the last step it had one (None before its first).
     finished : bool
         The run is over.
+    outputs_reported : set of str
+        The subsystems whose outputs a plant outside reported in place of their states (the
+        records hold their estimates, :meth:`Estimation.recorded
+        <dmpc.coordinator.estimation.Estimation.recorded>`).
     """
 
     def __init__(self, system: CoupledSystem, design: ControllerDesign, plant: Plant | None, options: ProtocolOptions,
@@ -145,6 +149,8 @@ class Coordinator:
         self._x = np.array(system.x0, dtype=float)  # the measured state, with a plant outside (until start)
         self._estimation = estimation
         self._estimate: Estimate | None = None  # the open step's, with estimation
+        self._outputs: dict[str, np.ndarray] = {}  # the outputs a plant outside reported of the step, in place of states
+        self.outputs_reported: set[str] = set()  # the subsystems it ever did so for
         self.terminal = self.policy.initial(self.x)
         self.finished = False
         self.last_plan: list[Plan | None] = [None] * system.M
@@ -212,32 +218,47 @@ class Coordinator:
         return self._refusals.counts
 
     # ------------------------------------------------------------------ inputs
-    def start(self, x0: np.ndarray | None = None) -> list[Action]:
+    @property
+    def estimates(self) -> bool:
+        """The controllers work from an estimate (the scenario's ``estimation``): a plant outside may
+        report a subsystem's outputs in place of its state."""
+        return self._estimation is not None
+
+    def start(self, x0: np.ndarray | None = None, outputs: Mapping[str, np.ndarray] | None = None) -> list[Action]:
         """Actions that release step 0, round 0.
 
         ``x0`` (shape (n,)): the state x(0) measured by a plant outside (required then; ignored
-        with a simulated plant). The terminal sets start from it.
+        with a simulated plant), NaN in the subsystems whose ``outputs`` y_i(0) (p_i,) it reported
+        instead (with estimation only). The terminal sets start from it (with estimation: from
+        the estimate).
         """
         if self.plant is None:
             if x0 is None:
                 raise ValueError("a coordinator with a plant outside starts from the measured x(0)")
             self._x = np.array(x0, dtype=float)
-            self.terminal = self.policy.initial(self._x)
-            self._step.note = self.terminal.note
+            if self._estimation is None:
+                self.terminal = self.policy.initial(self._x)
+                self._step.note = self.terminal.note
+        self._outputs = dict(outputs or {})
+        self.outputs_reported.update(self._outputs)
         if self._estimation is not None:
-            self._estimate = self._estimation.update(0, None, self._estimation.measure(0, self.measured))
+            self._estimate = self._estimation.update(0, None, self._estimation.measure(0, self.measured, self._outputs))
+            self._x = self._estimation.recorded(self._x, self._estimate)
             self.terminal = self.policy.initial(self.x)
             self._step.note = self.terminal.note
         self._combiner.step_started(self._step, self.x, self.terminal)
         return self._release_round()
 
-    def on_state(self, k: int, x: np.ndarray) -> list[Action]:
-        """The plant outside measured x(k) (shape (n,)) after the inputs of step k - 1: the step
+    def on_state(self, k: int, x: np.ndarray, outputs: Mapping[str, np.ndarray] | None = None) -> list[Action]:
+        """The plant outside measured x(k) (shape (n,); NaN in the subsystems whose ``outputs`` y_i(k)
+        it reported instead, as :meth:`start` takes them) after the inputs of step k - 1: the step
         is complete. Returns its actions; none for a state that was not awaited."""
         if self._pending is None or k != self.k + 1:
             return []
         pending, self._pending = self._pending, None
         self._x = np.array(x, dtype=float)
+        self._outputs = dict(outputs or {})
+        self.outputs_reported.update(self._outputs)
         return self._complete_step(pending, self._x)
 
     def on_plan(self, msg: PlanMessage) -> tuple[list[Action], str | None]:
@@ -413,6 +434,13 @@ class Coordinator:
 
     def _complete_step(self, pending: PendingStep, x_next: np.ndarray) -> list[Action]:
         """The step's record with x(k+1) (shape (n,)), then the next step's release (or the end)."""
+        if self._outputs:
+            # the state a plant outside did not report is recorded as the estimate that agrees with its
+            # outputs, so the estimate of step k + 1 comes first (it is computed once, here)
+            assert self._estimation is not None  # outputs are accepted with estimation only
+            self._estimate = self._estimation.update(pending.k + 1, pending.u,
+                                                     self._estimation.measure(pending.k + 1, x_next, self._outputs))
+            x_next = self._x = self._estimation.recorded(x_next, self._estimate)
         actions: list[Action] = [StepCompleted(partial(pending.record, x_next.copy(), self._now() - self._opened_at,
                                                        self.system))]
         self.terminal = pending.terminal
@@ -422,7 +450,7 @@ class Coordinator:
             self.finished = True
             actions.append(RunFinished("finished"))
             return actions
-        if self._estimation is not None:
+        if self._estimation is not None and not self._outputs:
             y = self._estimation.measure(self._step.k, x_next)
             self._estimate = self._estimation.update(self._step.k, pending.u, y)
         self._combiner.step_started(self._step, self.x, self.terminal)

@@ -8,6 +8,7 @@ estimate x^(k) in place of x(k); the disturbance estimate d^(k) moves the setpoi
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,10 +58,41 @@ class Estimation:
         self.observer = Observer(design)
         self._C = design.model.C
 
-    def measure(self, k: int, x: np.ndarray) -> np.ndarray:
-        """The outputs y(k) = C x(k) (+ v(k)) of step ``k`` from the plant's state ``x`` (n,), shape (p,)."""
-        y = np.asarray(self._C @ x, dtype=float)
-        return y + self.noise(k) if self.noise is not None else y
+    def measure(self, k: int, x: np.ndarray, outputs: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """The outputs y(k) = C x(k) (+ v(k)) of step ``k`` from the plant's state ``x`` (n,), shape (p,).
+
+        ``outputs``: the outputs y_i (p_i,) a plant outside measured itself, by subsystem name, in
+        place of those subsystems' states (NaN in ``x``): taken as they are.
+        """
+        if not outputs:
+            y = np.asarray(self._C @ x, dtype=float)
+            return y + self.noise(k) if self.noise is not None else y
+        y = np.asarray(self._C @ np.where(np.isnan(x), 0.0, x), dtype=float)
+        if self.noise is not None:
+            y = y + self.noise(k)
+        model = self.design.model
+        for i, part in enumerate(model.parts):
+            if part.name in outputs:
+                y[model.ys(i)] = outputs[part.name]
+        return y
+
+    def recorded(self, x: np.ndarray, estimate: Estimate) -> np.ndarray:
+        """The state (n,) recorded of a step whose plant reported some subsystems' outputs, not their
+        states (NaN in ``x``): there, the ``estimate`` x^_i moved by the least change that makes its
+        outputs the measured ones, x^_i + pinv(C_i) (y_i - C_i x^_i), so that the records' outputs
+        C_i x_i are what the plant measured; elsewhere ``x`` as it is."""
+        missing = np.isnan(x)
+        if not missing.any():
+            return x
+        out = np.array(x, dtype=float)
+        model, system = self.design.model, self.design.model.system
+        for i, part in enumerate(model.parts):
+            xs = system.xs(i)
+            if not missing[xs].any():
+                continue
+            x_hat = estimate.x_hat[xs]
+            out[xs] = x_hat + np.linalg.pinv(part.C) @ (estimate.y[model.ys(i)] - part.C @ x_hat)
+        return out
 
     def update(self, k: int, u_previous: np.ndarray | None, y: np.ndarray) -> Estimate:
         """The estimate of step ``k`` from ``u_previous``, the inputs of step k - 1 (m,) (None at

@@ -42,6 +42,7 @@ from dmpc.coordinator.barrier import (
 from dmpc.coordinator.target_worker import Known, TargetWorker
 from dmpc.core.steps import StepRecord
 from dmpc.plant.link import PlantLink
+from dmpc.plant.state_inbox import Measurement
 from dmpc.security.rejects import STALE, Rejections
 
 log = logging.getLogger("dmpc.plant")
@@ -193,11 +194,12 @@ class CoordinatorNode:
         self.rejects = Rejections(log, self.who, bus.now, self.names + sources)
         self.rejected: dict[str, int] = self.rejects.counts
         self.other_versions: dict[str, int | None] = {}  # per agent or source: the protocol version it spoke
-        self.x0 = None  # x(0) from a plant outside, once complete
+        self.x0: Measurement | None = None  # x(0) (or the outputs) from a plant outside, once complete
         self.link: PlantLink | None = None
         if coordinator.plant is None:
             self.link = PlantLink(bus, coordinator.system, self.run_id, self.rejects, self._on_measured, self.fail,
-                                  timeout=plant_timeout if plant_timeout is not None else 10.0)
+                                  timeout=plant_timeout if plant_timeout is not None else 10.0,
+                                  outputs=coordinator.estimates)
             self.link.await_first()
         self._t0 = 0.0
         self._opened_step = -1  # the last step whose time was started
@@ -216,10 +218,13 @@ class CoordinatorNode:
     def counts(self) -> dict:
         """What this node counted, for ``summary.json``: messages dropped (``rejected`` and their
         ``rejected_reasons``), copies ignored (``duplicates``), plans refused (``inputs_refused``),
-        and the agents' plan messages and kept notices that reached it (``messages``)."""
+        and the agents' plan messages and kept notices that reached it (``messages``); with a plant
+        outside that reported outputs in place of states, the subsystems it did so for
+        (``outputs_reported``: their recorded states are estimates)."""
         c = self.coordinator
         return {"rejected": self.rejected, "rejected_reasons": self.rejects.reasons, "duplicates": c.duplicates,
-                "inputs_refused": c.inputs_refused, "messages": self.messages.summary(self.names)}
+                "inputs_refused": c.inputs_refused, "messages": self.messages.summary(self.names),
+                **({"outputs_reported": sorted(c.outputs_reported)} if c.outputs_reported else {})}
 
     def announce(self) -> None:
         self.bus.declare_alive(keys.alive(self.run_id, keys.COORDINATOR_ROLE))
@@ -452,15 +457,16 @@ class CoordinatorNode:
         if not self.started and self.ready >= set(self.names) and (self.link is None or self.x0 is not None):
             self.started = True
             self._t0 = self.bus.now()
-            self._carry_out(self.coordinator.start(self.x0))
+            x0 = self.x0
+            self._carry_out(self.coordinator.start(None if x0 is None else x0.x, None if x0 is None else x0.y))
 
-    def _on_measured(self, k: int, x) -> None:
-        """The plant outside measured x(k) (complete)."""
+    def _on_measured(self, k: int, measured: Measurement) -> None:
+        """The plant outside measured x(k) (complete; or, in part, the outputs y(k))."""
         if not self.started:
-            self.x0 = x
+            self.x0 = measured
             self._maybe_start()
         elif not self.finished:
-            self._carry_out(self.coordinator.on_state(k, x))
+            self._carry_out(self.coordinator.on_state(k, measured.x, measured.y))
 
     def present(self) -> bool:
         """True while an agent, or a plant outside, still holds its liveliness token."""

@@ -70,15 +70,20 @@ class SetpointIntake:
         assert self.tracker is not None  # checked by problem()
         entry = self._entry(msg, first_undecided)
         self.tracker.add(entry)
+        i = self.index[msg.subsystem]
+        x, u = _request_part(msg.x, self.system.subsystems[i].n), _request_part(msg.u, self.system.subsystems[i].m)
         note = (f"setpoint from {msg.sender} (id {msg.id}): subsystem {msg.subsystem} "
-                f"{_components_text('x', entry.x)}, {_components_text('u', entry.u)} from step {entry.at}")
+                f"{_components_text('x', x)}, {_components_text('u', u)} from step {entry.at}")
         return SetpointAnswer(self.run_id, msg.id, msg.subsystem, True, entry.at), note
 
     def _entry(self, msg: Setpoint, at: int) -> SetpointEntry:
-        """The schedule's entry of the request ``msg`` (checked by :meth:`problem`) from step ``at``."""
+        """The schedule's entry of the request ``msg`` (checked by :meth:`problem`) from step ``at``, in
+        the model's deviations (the request is in the plant's units)."""
         i = self.index[msg.subsystem]
         sub = self.system.subsystems[i]
         x, u = _request_part(msg.x, sub.n), _request_part(msg.u, sub.m)
+        if sub.x_op is not None:
+            x, u = x - sub.state_offset, u - sub.input_offset
         if self.tracker is not None and self.tracker.outputs is not None:
             # with estimation a request names outputs: each requested state is an output of its own
             # (checked by problem())
@@ -159,8 +164,10 @@ class SetpointIntake:
             shown = ", ".join(self.names[:8]) + (", ..." if len(self.names) > 8 else "")
             return f"unknown subsystem '{msg.subsystem}' (known: {shown})"
         sub = self.system.subsystems[i]
-        problem = (_component_problem(np.asarray(msg.x, dtype=float), "x", sub.n, sub.state_set, msg.subsystem)
-                   or _component_problem(np.asarray(msg.u, dtype=float), "u", sub.m, sub.input_set, msg.subsystem))
+        problem = (_component_problem(np.asarray(msg.x, dtype=float), "x", sub.n, sub.state_set, msg.subsystem,
+                                      None if sub.x_op is None else sub.state_offset)
+                   or _component_problem(np.asarray(msg.u, dtype=float), "u", sub.m, sub.input_set, msg.subsystem,
+                                         None if sub.x_op is None else sub.input_offset))
         if problem is None and self.tracker.outputs is not None:
             x = _request_part(np.asarray(msg.x, dtype=float), sub.n)
             if not np.isnan(np.asarray(msg.u, dtype=float)).all():
@@ -197,10 +204,12 @@ def _request_part(values: np.ndarray, size: int) -> np.ndarray:
     return np.full(size, np.nan) if values.size == 0 else values.copy()
 
 
-def _component_problem(values: np.ndarray, kind: str, size: int, bounds: LinearSet | None, name: str) -> str | None:
+def _component_problem(values: np.ndarray, kind: str, size: int, bounds: LinearSet | None, name: str,
+                       offset: np.ndarray | None = None) -> str | None:
     """Why the requested states (``kind`` x) or inputs (u) of subsystem ``name`` cannot be taken, or
     None: ``size`` entries or none, NaN or finite, inside a box X_i or U_i (a polytope's are left to
-    the target, which keeps inside it)."""
+    the target, which keeps inside it). With an operating point, ``offset`` (size,) is its value:
+    the request is in the plant's units, ``bounds`` in the model's deviations."""
     if values.ndim != 1 or values.size not in (0, size):
         what = f"n_i = {size} states" if kind == "x" else f"m_i = {size} inputs"
         return f"{kind}: expected {size} entries ({what} of subsystem '{name}') or none, got {values.size}"
@@ -209,9 +218,10 @@ def _component_problem(values: np.ndarray, kind: str, size: int, bounds: LinearS
             continue
         if not abs(value) <= MAX_MAGNITUDE:
             return f"{kind}[{c}]: expected a finite number up to {MAX_MAGNITUDE:g} in size, or NaN for a free one"
-        if bounds is not None and bounds.is_box and not bounds.lower[c] <= value <= bounds.upper[c]:
+        at = 0.0 if offset is None else float(offset[c])
+        if bounds is not None and bounds.is_box and not bounds.lower[c] + at <= value <= bounds.upper[c] + at:
             return (f"{kind}[{c}]: the target {value:g} of subsystem '{name}' is outside "
-                    f"{'X_i' if kind == 'x' else 'U_i'} [{bounds.lower[c]:g}, {bounds.upper[c]:g}]")
+                    f"{'X_i' if kind == 'x' else 'U_i'} [{bounds.lower[c] + at:g}, {bounds.upper[c] + at:g}]")
     return None
 
 

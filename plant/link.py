@@ -19,7 +19,7 @@ from dmpc.bus.codec import DecodeError, decode, encode
 from dmpc.bus.interface import Bus, Timer
 from dmpc.bus.messages import Inputs, State
 from dmpc.core.system import CoupledSystem
-from dmpc.plant.state_inbox import StateInbox
+from dmpc.plant.state_inbox import Measurement, StateInbox
 from dmpc.security.rejects import STALE, Rejections
 
 REPEAT = 0.5
@@ -36,22 +36,28 @@ class PlantLink:
     run_id : str
     rejects : Rejections
         Where dropped states are counted, per source.
-    on_state : callable (k, x) -> None
-        Called with x(k), shape (n,), once it is complete.
+    on_state : callable (k, Measurement) -> None
+        Called with the measurement of step k once it is complete: x(k), shape (n,), NaN in the
+        subsystems that reported their outputs y_i(k) instead (a run with ``outputs``).
     on_failure : callable str -> None
         Called once if a state does not come in time.
     timeout : float
         Seconds to wait for x(k+1) after sending the inputs of step k.
+    outputs : bool
+        The run estimates its state: a subsystem may report its outputs in place of its state.
+
+    With an operating point (the subsystems' ``x_op``, ``u_op``) the wire is in the plant's own
+    units: the inputs go out as u_op + u, and x_op (C x_op for outputs) is taken from what comes in.
     """
 
     def __init__(self, bus: Bus, system: CoupledSystem, run_id: str, rejects: Rejections,
-                 on_state: Callable[[int, np.ndarray], None], on_failure: Callable[[str], None],
-                 timeout: float = 10.0) -> None:
+                 on_state: Callable[[int, Measurement], None], on_failure: Callable[[str], None],
+                 timeout: float = 10.0, outputs: bool = False) -> None:
         self.bus = bus
         self.system = system
         self.run_id = run_id
         self.rejects = rejects
-        self.inbox = StateInbox(system)
+        self.inbox = StateInbox(system, outputs)
         self.names = self.inbox.names
         self.on_state = on_state
         self.on_failure = on_failure
@@ -75,6 +81,8 @@ class PlantLink:
 
     def apply(self, k: int, u: np.ndarray) -> None:
         """Send u(k) (shape (m,)) and await x(k+1)."""
+        if self.system.has_operating_point:
+            u = u + self.system.input_offset
         parts = {name: u[self.system.us(i)] for i, name in enumerate(self.names)}
         self._inputs = encode(Inputs(run=self.run_id, k=k, u=parts))
         self.inbox.expect(k + 1)
@@ -119,10 +127,21 @@ class PlantLink:
                 self._drop(source, problem)
             return
         k = self.inbox.k
-        x = self.inbox.take(msg)
-        if x is not None and k is not None and not self._stopped:  # k: the awaited step, a state was taken
+        measured = self.inbox.take(msg)
+        if measured is not None and k is not None and not self._stopped:  # k: the awaited step, a state was taken
             self._cancel()
-            self.on_state(k, x)
+            self.on_state(k, self._around_operating_point(measured))
+
+    def _around_operating_point(self, measured: Measurement) -> Measurement:
+        """``measured`` (in the plant's units) in the model's deviations from the operating point."""
+        system = self.system
+        if not system.has_operating_point:
+            return measured
+        outputs = {}
+        for name, y in measured.y.items():
+            sub = system.subsystems[self.names.index(name)]
+            outputs[name] = y - sub.output_matrix @ sub.state_offset
+        return Measurement(measured.x - system.state_offset, outputs)
 
     def _drop(self, source: str, why: str) -> None:
         """Count a dropped state and keep why, to name it if the step's state never completes."""

@@ -58,10 +58,14 @@ class MatrixPlant(Plant):
 class FunctionPlant(MatrixPlant):
     """x(k+1) = f(x(k), u(k), k) (+ w(k)) with the user's function f.
 
+    With an operating point (the subsystems' ``x_op``, ``u_op``), f works in the plant's own units:
+    it is given x_op + x and u_op + u and returns the next state in those units, from which x_op is
+    taken back; the plant's state stays in the model's deviations, like the rest of the run.
+
     Parameters
     ----------
     system : CoupledSystem
-        Gives x0 and the dimensions.
+        Gives x0, the dimensions and the operating point.
     function : callable (x, u, k) -> x_next
         x (n,), u (m,): copies, so the function may change them; it returns n numbers.
     name : str
@@ -74,12 +78,16 @@ class FunctionPlant(MatrixPlant):
         super().__init__(system, system.A, system.B, x0, disturbance)
         self.function = function
         self.name = name or getattr(function, "__qualname__", repr(function))
+        self._operating = (system.state_offset, system.input_offset) if system.has_operating_point else None
 
     def step(self, u: np.ndarray) -> np.ndarray:
         """Call the function for step k with the inputs u (m,) and return x(k+1); PlantModelError if it fails."""
         where = f"the plant function {self.name} failed at step k = {self.k}"
+        x, u = self.x.copy(), np.array(u, dtype=float)
+        if self._operating is not None:
+            x, u = x + self._operating[0], u + self._operating[1]
         try:
-            out = self.function(self.x.copy(), np.array(u, dtype=float), self.k)
+            out = self.function(x, u, self.k)
         except Exception as exc:
             raise PlantModelError(f"{where}: {type(exc).__name__}: {exc}") from exc
         try:
@@ -88,6 +96,8 @@ class FunctionPlant(MatrixPlant):
             raise PlantModelError(f"{where}: it returned {type(out).__name__}, not {self.x.size} numbers") from None
         if x_next.size != self.x.size:
             raise PlantModelError(f"{where}: it returned {x_next.size} numbers, the state has {self.x.size}")
+        if self._operating is not None:
+            x_next = x_next - self._operating[0]
         return self._advance(x_next)
 
 

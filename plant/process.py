@@ -18,7 +18,7 @@ class PlantRoleOutcome:
 
 
 def run_plant_role(prepared, bus: Bus, run_id: str, startup_timeout: float,
-                   sensors: list[str] | None = None) -> PlantRoleOutcome:
+                   sensors: list[str] | None = None, outputs: bool = False) -> PlantRoleOutcome:
     """Serve the plant (or the sensors of ``sensors``) until the coordinator stops the run.
 
     Parameters
@@ -32,9 +32,12 @@ def run_plant_role(prepared, bus: Bus, run_id: str, startup_timeout: float,
         Seconds to wait for step 0's inputs.
     sensors : list of str, optional
         Subsystems reported one by one as ``sensor-<name>``; None reports the whole state.
+    outputs : bool
+        Report the measured outputs y_i = C_i x_i of the subsystems whose C is not the identity
+        in place of their states (:class:`~dmpc.plant.role.PlantRole`).
     """
     who = "plant" if sensors is None else f"sensors {', '.join(sensors)}"
-    role = PlantRole(bus, make_plant(prepared), prepared.system, run_id, sensors=sensors)
+    role = PlantRole(bus, make_plant(prepared), prepared.system, run_id, sensors=sensors, outputs=outputs)
     role.announce()
     try:
         started = bus.run(until=lambda: role.k > 0 or role.stopped, timeout=startup_timeout)

@@ -3,7 +3,9 @@
 This is dmpc's own simulated plant speaking the plant's side of the protocol (docs/protocol.md,
 "The plant's side"), for ``dmpc plant --coordinator external``. It reports the whole state as
 ``plant``, or only some subsystems' states, one ``sensor-I`` per subsystem, as separate sensors
-on one machine each would.
+on one machine each would; with ``outputs``, each subsystem that measures less than its state
+(a C other than the identity) reports its outputs y_i = C_i x_i instead, as its sensors would.
+With an operating point it speaks the plant's own units, as an outside plant does.
 
 The rules it follows are the ones any outside plant must follow:
 
@@ -48,10 +50,13 @@ class PlantRole:
         whole state as ``plant``.
     repeat : float
         Seconds between copies of x(0) until step 0's inputs arrive.
+    outputs : bool
+        Report the outputs y_i = C_i x_i of the subsystems whose C is not the identity, not their
+        states (a run with estimation).
     """
 
     def __init__(self, bus: Bus, plant, system: CoupledSystem, run_id: str, sensors: list[str] | None = None,
-                 repeat: float = REPEAT) -> None:
+                 repeat: float = REPEAT, outputs: bool = False) -> None:
         self.bus = bus
         self.plant = plant
         self.system = system
@@ -59,6 +64,7 @@ class PlantRole:
         self.names = [s.name for s in system.subsystems]
         self.sensors = sensors
         self.repeat = repeat
+        self._measures = {s.name: s.C for s in system.subsystems if outputs and s.C is not None}
         self.k = 0  # the step whose state was sent last
         self.stopped = False
         self.stop_reason = ""
@@ -92,15 +98,15 @@ class PlantRole:
         self._timer = self.bus.call_later(self.repeat, self._send_first)
 
     def _send_state(self) -> None:
-        parts = self.system.split_state(np.asarray(self.plant.x, dtype=float))
-        by_name = dict(zip(self.names, parts))
-        if self.sensors is None:
-            msg = State(run=self.run_id, k=self.k, sender=keys.PLANT_ROLE, x=by_name)
-            self.bus.publish(keys.state(self.run_id, keys.PLANT_ROLE), encode(msg))
-            return
-        for name in self.sensors:
-            role = keys.sensor_role(name)
-            msg = State(run=self.run_id, k=self.k, sender=role, x={name: by_name[name]})
+        x = np.asarray(self.plant.x, dtype=float)
+        if self.system.has_operating_point:
+            x = x + self.system.state_offset  # the wire is in the plant's units
+        by_name = dict(zip(self.names, self.system.split_state(x)))
+        for role, names in ([(keys.PLANT_ROLE, self.names)] if self.sensors is None else
+                            [(keys.sensor_role(name), [name]) for name in self.sensors]):
+            states = {name: by_name[name] for name in names if name not in self._measures}
+            outputs = {name: self._measures[name] @ by_name[name] for name in names if name in self._measures}
+            msg = State(run=self.run_id, k=self.k, sender=role, x=states, y=outputs)
             self.bus.publish(keys.state(self.run_id, role), encode(msg))
 
     def _decode(self, payload: bytes, expected: type[_FromCoordinator]) -> _FromCoordinator | None:
@@ -129,6 +135,8 @@ class PlantRole:
             self.rejects(COORDINATOR, problem)
             return
         u = np.concatenate([np.asarray(msg.u[name], dtype=float) for name in self.names])
+        if self.system.has_operating_point:
+            u = u - self.system.input_offset
         self.plant.step(u)
         self.k += 1
         if self._timer is not None:

@@ -354,8 +354,8 @@ def pump_disturbance(data: dict, folder: Path) -> np.ndarray:
 class BiasedSensors(Estimation):
     """The coordinator's measurement with a constant sensor bias from ``DISTURBANCE_START``."""
 
-    def measure(self, k: int, x: np.ndarray) -> np.ndarray:
-        y = super().measure(k, x)
+    def measure(self, k: int, x: np.ndarray, outputs=None) -> np.ndarray:
+        y = super().measure(k, x, outputs)
         return y + SENSOR_BIAS if k >= DISTURBANCE_START else y
 
 

@@ -199,7 +199,7 @@ def examples() -> dict[str, object]:
         "ready": Ready(run="r", sender="a", design_digest="d", pid=7, scenario="paper", horizon=2),
         "stop": Stop(run="r", k=3, reason="finished"),
         "inputs": Inputs(run="r", k=3, u={"a": np.zeros(1), "b": np.ones(1)}),
-        "state": State(run="r", k=4, sender="plant", x={"a": np.zeros(2), "b": np.ones(2)}),
+        "state": State(run="r", k=4, sender="plant", x={"a": np.zeros(2)}, y={"b": np.ones(1)}),
         "setpoint": Setpoint(run="r", sender="scada", id=17, subsystem="a", x=np.array([1.0, np.nan]),
                              u=np.zeros(0)),
         "setpoint-answer": SetpointAnswer(run="r", id=17, subsystem="a", accepted=True, k=23),

@@ -139,6 +139,7 @@ def plant(scenario: ScenarioArg,
           out: Annotated[Optional[Path], typer.Option("--out", help="Run folder to write (created); needed when this process hosts the coordinator.")] = None,
           coordinator_side: Annotated[str, typer.Option("--coordinator", help="internal (default): host the coordinator too, one process for both; external: be the plant alone, for a 'dmpc coordinator --plant external'.")] = "internal",
           sensor: Annotated[Optional[list[str]], typer.Option("--sensor", help="With --coordinator external: report only this subsystem's state, as its own sensor (repeatable).", show_default=False)] = None,
+          outputs: Annotated[bool, typer.Option("--outputs", help="With --coordinator external and a scenario with estimation: report the measured outputs y_i = C_i x_i of the subsystems whose C is not the identity in place of their states, as their sensors would.")] = False,
           connect: ConnectOpt = None, listen: ListenOpt = None,
           mode: ServerModeOpt = "peer",
           run_id: RunIdOpt = None, design_file: DesignOpt = None, startup_timeout: StartupOpt = 30.0,
@@ -152,9 +153,9 @@ def plant(scenario: ScenarioArg,
     flags = NodeFlags(connect, listen, mode, run_id, design_file, startup_timeout, steps, multicast, lease, zenoh_config,
                       tls, FaultFlags(delay, jitter, loss, seed, deadline), set_, model)
     if checked_side(coordinator_side, "--coordinator") == "internal":
-        if sensor:
-            raise InputError("--sensor: only with --coordinator external (a process that hosts the coordinator "
-                             "measures every subsystem itself)")
+        if sensor or outputs:
+            raise InputError(f"{'--sensor' if sensor else '--outputs'}: only with --coordinator external (a process "
+                             "that hosts the coordinator measures every subsystem itself)")
         if out is None:
             raise InputError("--out: a run folder is needed when this process hosts the coordinator "
                              "(or pass --coordinator external to be the plant alone)")
@@ -162,7 +163,7 @@ def plant(scenario: ScenarioArg,
         return
     if out is not None:
         raise InputError("--out: the plant alone writes no run folder (the coordinator does)")
-    _serve_plant(scenario, sensor, flags)
+    _serve_plant(scenario, sensor, flags, outputs)
 
 
 def _host_coordinator(scenario: Path, out: Path, flags: NodeFlags, plant_side: str, plant_timeout: float, quiet: bool,
@@ -196,8 +197,9 @@ def _host_coordinator(scenario: Path, out: Path, flags: NodeFlags, plant_side: s
     raise typer.Exit(outcome.code)
 
 
-def _serve_plant(scenario: Path, sensors: list[str] | None, flags: NodeFlags) -> None:
-    """``dmpc plant --coordinator external``: the simulated plant (or some sensors) alone."""
+def _serve_plant(scenario: Path, sensors: list[str] | None, flags: NodeFlags, outputs: bool = False) -> None:
+    """``dmpc plant --coordinator external``: the simulated plant (or some sensors) alone; with ``outputs``
+    it reports the outputs of the subsystems that measure less than their state."""
     from dmpc.plant.process import run_plant_role  # start-up time: the plant role only for its command
 
     check_mode(flags.mode)
@@ -212,11 +214,15 @@ def _serve_plant(scenario: Path, sensors: list[str] | None, flags: NodeFlags) ->
             raise InputError("--sensor: a subsystem is named twice")
         if flags.tls is not None and len(sensors) > 1:
             raise InputError("--sensor: with --tls, one sensor per process (each has its own certificate)")
+    if outputs and prepared.estimator is None:
+        raise InputError("--outputs: the scenario has no 'estimation', so the coordinator needs every state "
+                         "(add estimation, or leave --outputs out)")
     role = keys.PLANT_ROLE if not sensors else keys.sensor_role(sensors[0])
     rid = checked_run_id(flags.run_id, prepared)
     bus = flags.open_bus(role)
     try:
-        outcome = run_plant_role(prepared, bus, rid, flags.startup_timeout, sensors=list(sensors) if sensors else None)
+        outcome = run_plant_role(prepared, bus, rid, flags.startup_timeout, sensors=list(sensors) if sensors else None,
+                                 outputs=outputs)
     finally:
         bus.close()
     if outcome.code != 0:

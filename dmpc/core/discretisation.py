@@ -20,6 +20,7 @@ Pure numerics: no I/O.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, TypedDict
 
@@ -193,8 +194,7 @@ def largest_difference(system: CoupledSystem, A: np.ndarray, B: np.ndarray) -> f
 
 
 def _with_matrices(s: Subsystem, A: np.ndarray, B: np.ndarray) -> Subsystem:
-    return Subsystem(name=s.name, A=np.array(A), B=np.array(B), Q=s.Q, R=s.R, x0=s.x0, input_set=s.input_set,
-                     state_set=s.state_set, C=s.C)
+    return dataclasses.replace(s, A=np.array(A), B=np.array(B))
 
 
 class FillInRefused(DmpcError, ValueError):

@@ -152,6 +152,12 @@ class Subsystem:
     C : ndarray, shape (p_i, n_i), or None
         What the plant measures of the subsystem, y_i = C x_i; None (the default) is the identity:
         every state is measured, y_i = x_i.
+    x_op : ndarray, shape (n_i,), or None
+        The state of the operating point in the plant's own units: the model, x0 and the sets are in
+        deviations from it, the records and the plant's own function in the plant's units
+        (``x_op + x``). None (the default): the plant's units are the model's (zeros).
+    u_op : ndarray, shape (m_i,), or None
+        The operating point's inputs, the same way.
     """
 
     name: str
@@ -163,6 +169,8 @@ class Subsystem:
     input_set: LinearSet
     state_set: LinearSet | None = None
     C: np.ndarray | None = None
+    x_op: np.ndarray | None = None
+    u_op: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -181,6 +189,16 @@ class Subsystem:
     def output_matrix(self) -> np.ndarray:
         """C_i, shape (p_i, n_i): the identity when C is None."""
         return np.eye(self.n) if self.C is None else np.asarray(self.C, dtype=float)
+
+    @property
+    def state_offset(self) -> np.ndarray:
+        """x_op, shape (n_i,): the operating point's state in the plant's units (zeros without one)."""
+        return np.zeros(self.n) if self.x_op is None else np.asarray(self.x_op, dtype=float)
+
+    @property
+    def input_offset(self) -> np.ndarray:
+        """u_op, shape (m_i,): the operating point's inputs in the plant's units (zeros without one)."""
+        return np.zeros(self.m) if self.u_op is None else np.asarray(self.u_op, dtype=float)
 
 
 @dataclass(frozen=True)
@@ -321,6 +339,21 @@ class CoupledSystem:
     @cached_property
     def x0(self) -> np.ndarray:
         return np.concatenate([s.x0 for s in self.subsystems])
+
+    @cached_property
+    def has_operating_point(self) -> bool:
+        """Some subsystem gives an operating point: the plant's units are not the model's."""
+        return any(s.x_op is not None or s.u_op is not None for s in self.subsystems)
+
+    @cached_property
+    def state_offset(self) -> np.ndarray:
+        """The stacked x_op, shape (n,): a state in the plant's units is ``state_offset + x``."""
+        return np.concatenate([s.state_offset for s in self.subsystems])
+
+    @cached_property
+    def input_offset(self) -> np.ndarray:
+        """The stacked u_op, shape (m,): an input in the plant's units is ``input_offset + u``."""
+        return np.concatenate([s.input_offset for s in self.subsystems])
 
     @cached_property
     def _state_parts(self) -> tuple[slice, ...]:

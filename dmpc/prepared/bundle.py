@@ -73,7 +73,8 @@ def bundle_json(prepared: Prepared) -> dict:
         "method": prepared.method,
         "subsystems": [{"name": s.name, "A": s.A.tolist(), "B": s.B.tolist(), "Q": s.Q.tolist(), "R": s.R.tolist(),
                         "x0": s.x0.tolist(), "input": _set_json(s.input_set), "state": _set_json(s.state_set),
-                        **({} if s.C is None else {"C": s.C.tolist()})}
+                        **({} if s.C is None else {"C": s.C.tolist()}),
+                        **({} if s.x_op is None else {"x_op": s.state_offset.tolist(), "u_op": s.input_offset.tolist()})}
                        for s in system.subsystems],
         "couplings": [{"target": c.target, "source": c.source, "A": c.A.tolist(), "B": c.B.tolist()}
                       for c in system.couplings],
@@ -127,7 +128,9 @@ def load_bundle(path: Path) -> Prepared:
         subsystems = tuple(Subsystem(s["name"], np.array(s["A"], float), np.array(s["B"], float),
                                      np.array(s["Q"], float), np.array(s["R"], float), np.array(s["x0"], float),
                                      _linear_set(s["input"]), _set_from(s["state"]),
-                                     None if s.get("C") is None else np.array(s["C"], float).reshape(-1, len(s["A"])))
+                                     None if s.get("C") is None else np.array(s["C"], float).reshape(-1, len(s["A"])),
+                                     *((None, None) if s.get("x_op") is None else
+                                       (np.array(s["x_op"], float), np.array(s["u_op"], float))))
                            for s in d["subsystems"])
         couplings = tuple(Coupling(c["target"], c["source"], np.array(c["A"], float), np.array(c["B"], float))
                           for c in d["couplings"])

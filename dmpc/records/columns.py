@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import zipfile
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -94,11 +95,16 @@ class StepColumns:
     system : CoupledSystem
     path : Path, optional
         The rows file; None keeps the rows in memory.
+    disturbance_sizes : sequence of int, optional
+        With estimation, n_d,i per subsystem: written as ``disturbance_sizes`` beside ``d_hat``
+        (the system knows the output sizes p_i, not the disturbance models).
     """
 
-    def __init__(self, system: CoupledSystem, path: Path | None = None) -> None:
+    def __init__(self, system: CoupledSystem, path: Path | None = None,
+                 disturbance_sizes: Sequence[int] | None = None) -> None:
         self.system = system
         self.path = path
+        self.disturbance_sizes = None if disturbance_sizes is None else [int(v) for v in disturbance_sizes]
         self.tally = StepTally()
         self.layout: dict[str, Column] | None = None
         self.width = 0
@@ -211,7 +217,9 @@ class StepColumns:
         """The arrays of ``trajectory.npz`` (see :func:`dmpc.records.run_folder.trajectory_arrays`).
 
         Plus ``fallback_code`` (K, M): the index in ``tally.reasons`` of each agent's fallback reason.
-        Large arrays are views of the memory map; read them a block of rows at a time.
+        With estimation also ``output_sizes`` (M,), the p_i that split ``y`` by subsystem, and
+        ``disturbance_sizes`` (M,) when they were given. Large arrays are views of the memory map;
+        read them a block of rows at a time.
         """
         system, M = self.system, self.system.M
         if self.tally.steps == 0:
@@ -237,12 +245,18 @@ class StepColumns:
             elif key in _BOOL:
                 block = block.astype(bool)
             out[key] = block
+        if "y" in out:
+            out["output_sizes"] = np.array([s.p for s in system.subsystems], dtype=int)
+            if self.disturbance_sizes is not None:
+                out["disturbance_sizes"] = np.array(self.disturbance_sizes, dtype=int)
         return out
 
 
-def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+def write_npz(path: Path, arrays: dict[str, np.ndarray],
+              transform: Callable[[str, np.ndarray], np.ndarray] | None = None) -> None:
     """``np.savez`` of ``arrays`` to ``path`` that copies each array a block of rows at a time (memory
-    maps stay unread)."""
+    maps stay unread); ``transform(key, block)``, if given, gives what is written of each block of
+    rows of the array ``key`` (the same shape and type, e.g. moved to the plant's units)."""
     tmp = path.with_suffix(path.suffix + ".tmp")
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
         for key, value in arrays.items():
@@ -250,9 +264,10 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
             with zf.open(f"{key}.npy", "w", force_zip64=True) as fh:
                 np.lib.format.write_array_header_2_0(fh, {"descr": np.lib.format.dtype_to_descr(arr.dtype),
                                                           "fortran_order": False, "shape": arr.shape})
-                if arr.ndim == 0 or arr.shape[0] <= BLOCK_ROWS:
-                    fh.write(np.ascontiguousarray(arr).tobytes())
-                    continue
-                for start in range(0, arr.shape[0], BLOCK_ROWS):
-                    fh.write(np.ascontiguousarray(arr[start:start + BLOCK_ROWS]).tobytes())
+                blocks = [arr] if arr.ndim == 0 or arr.shape[0] <= BLOCK_ROWS else \
+                    (arr[start:start + BLOCK_ROWS] for start in range(0, arr.shape[0], BLOCK_ROWS))
+                for block in blocks:
+                    if transform is not None:
+                        block = transform(key, block)
+                    fh.write(np.ascontiguousarray(block).astype(arr.dtype, copy=False).tobytes())
     tmp.replace(path)

@@ -19,6 +19,7 @@ from dmpc.core.steps import StepRecord
 from dmpc.core.system import CoupledSystem
 from dmpc.records.columns import StepColumns, StepTally, write_npz
 from dmpc.records.files import ROWS, STEP_LOG, SUMMARY, TRAJECTORY
+from dmpc.records.plant_units import PlantUnits
 from dmpc.records.tracking import segment_traces, target_changes, tracking_summary
 from dmpc.records.verdict import RunLimits, judge, state_bound_excess
 
@@ -116,6 +117,7 @@ class RunFolder:
         self.path = Path(path)
         claim_folder(self.path, STEP_LOG, "a run")
         self.system = system
+        self.units = PlantUnits.of(system)
         try:
             self._log = open(self.path / STEP_LOG, "a", encoding="utf-8")
             self.columns = StepColumns(system, self.path / ROWS)
@@ -145,7 +147,7 @@ class RunFolder:
 
     def append_step(self, rec: StepRecord) -> None:
         """Append the step ``rec`` to the log (flushed) and to the rows of the arrays."""
-        text = step_text(rec)
+        text = step_text(rec, self.units)
         log_end = self._log.tell()
         try:
             self._log.write(text)
@@ -190,7 +192,8 @@ class RunFolder:
         self.close()
         arrays = self.columns.arrays()
         try:
-            write_npz(self.path / TRAJECTORY, {**_public(arrays), **layout_arrays(self.system)})
+            write_npz(self.path / TRAJECTORY, {**_public(arrays), **layout_arrays(self.system)},
+                      None if self.units is None else self.units.array)
         except OSError as exc:
             raise write_error(exc, self.path / TRAJECTORY) from None
         extra = dict(extra or {})
@@ -208,24 +211,26 @@ class RunFolder:
         return summary
 
 
-def step_text(rec: StepRecord) -> str:
-    """The step record ``rec`` as its ``steps.jsonl`` line (docs/records.md), with its newline.
+def step_text(rec: StepRecord, units: PlantUnits | None = None) -> str:
+    """The step record ``rec`` as its ``steps.jsonl`` line (docs/records.md), with its newline, in
+    the plant's ``units`` when the run has an operating point.
 
     Written for every step on the coordinator's step path, so serialised in one call of a C
     encoder: arrays as nested lists, NaN and infinities as ``null``, as :func:`step_line` gives them.
     """
-    return orjson.dumps(_line_fields(rec), default=jsonable, option=_STEP_OPTIONS).decode()
+    return orjson.dumps(_line_fields(rec, units), default=jsonable, option=_STEP_OPTIONS).decode()
 
 
 _STEP_OPTIONS = orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_APPEND_NEWLINE
 
 
-def step_line(rec: StepRecord) -> dict:
-    """The step record ``rec`` as its ``steps.jsonl`` line (docs/records.md), JSON-ready."""
-    return jsonable(_line_fields(rec))
+def step_line(rec: StepRecord, units: PlantUnits | None = None) -> dict:
+    """The step record ``rec`` as its ``steps.jsonl`` line (docs/records.md), JSON-ready, in the plant's
+    ``units`` when the run has an operating point."""
+    return jsonable(_line_fields(rec, units))
 
 
-def _line_fields(rec: StepRecord) -> dict:
+def _line_fields(rec: StepRecord, units: PlantUnits | None = None) -> dict:
     line = {
         "k": rec.k, "x": rec.x, "u": rec.u, "alpha": rec.alpha, "beta": rec.beta, "J": rec.J,
         "J_agents": rec.J_agents, "S": rec.S, "rounds": rec.rounds, "max_change": rec.max_change,
@@ -248,7 +253,7 @@ def _line_fields(rec: StepRecord) -> dict:
                      "governor": t.theta})
         if t.request.y is not None:
             line["setpoint_y"] = t.request.y
-    return line
+    return line if units is None else units.line(line)
 
 
 def write_error(exc: OSError, path: Path, cls: type[DmpcError] = RecordWriteError) -> DmpcError:
@@ -365,6 +370,8 @@ def summarise(system: CoupledSystem, steps: StepTally | list[StepRecord], arrays
         "step_time_p99_s": float(np.percentile(step_time, 99)) if step_time.size else None,
         **({"tracking": tracked} if (tracked := tracking_summary(system, arrays, labels, dt, limits.setpoint_margin,
                                                                  traces)) is not None else {}),
+        # the norms above are of the model's deviations: say so when the records are in the plant's units
+        **({"operating_point": True} if system.has_operating_point else {}),
         **({"keeps": sum(steps.keeps), "keeps_per_agent": dict(zip(names, steps.keeps)),
             "solve_reasons": dict(sorted(steps.solve_reasons.items()))} if steps.keeps else {}),
     }

@@ -276,10 +276,11 @@ def print_summary(summary: dict, out) -> None:
     table.add_row("fallbacks", str(summary["fallbacks"]))
     if summary.get("keeps") is not None:
         table.add_row("solves / plans kept", trigger_text(summary))
-    table.add_row("max |u|", f"{summary['max_abs_u']:.4g}")
+    around = bool(summary.get("operating_point"))  # the norms are of the deviations from it
+    table.add_row("max |u - u_op|" if around else "max |u|", f"{summary['max_abs_u']:.4g}")
     table.add_row(*first_costs(J))
     table.add_row("closed-loop cost", number_text(summary["closed_loop_cost"]))
-    table.add_row("||x(end)||_inf", f"{summary['final_state_norm_inf']:.3g}")
+    table.add_row("||x(end) - x_op||_inf" if around else "||x(end)||_inf", f"{summary['final_state_norm_inf']:.3g}")
     for line in tracking_lines(summary.get("tracking")):
         table.add_row(*(Text(cell) for cell in line))  # as written: a unit's [m] is not markup
     if summary.get("solve_time_median_s") is not None:

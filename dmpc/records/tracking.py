@@ -30,12 +30,18 @@ asked (the 2 % settling time)."""
 class Component:
     """One requested component: ``subsystem``, its ``label``, whether it is a state, an input or an
     output (``kind``: ``x``, ``u`` or ``y``) and where it sits in the stacked arrays (``column``:
-    of x (n,), u (m,) or y = C x (p,))."""
+    of x (n,), u (m,) or y = C x (p,)); ``offset``, the operating point's value of it in the plant's
+    units (None when the run has no operating point: the plant's units are the model's)."""
 
     subsystem: str
     label: str
     kind: str  # "x", "u" or "y"
     column: int
+    offset: float | None = None
+
+    def plant(self, value: float) -> float:
+        """``value`` of this component (in the model's deviations) in the plant's units."""
+        return float(value) if self.offset is None else float(value) + self.offset
 
 
 def components(system: CoupledSystem, labels: dict | None = None, outputs: bool = False) -> list[Component]:
@@ -43,18 +49,23 @@ def components(system: CoupledSystem, labels: dict | None = None, outputs: bool 
     labelled with the scenario's names in ``labels`` (``Ta [K]``; ``labels["output"]`` for the
     outputs) or x1, u1, y1, ..."""
     labels = labels or {}
+    shifted = system.has_operating_point
     out = []
     for i, sub in enumerate(system.subsystems):
-        for kind, size, start, key in (("x", sub.n, system.xs(i).start, "state"), ("u", sub.m, system.us(i).start, "input")):
+        for kind, size, start, key, at in (("x", sub.n, system.xs(i).start, "state", sub.state_offset),
+                                           ("u", sub.m, system.us(i).start, "input", sub.input_offset)):
             named = labels.get(key, {}).get(sub.name)
             for c in range(size):
-                out.append(Component(sub.name, named[c] if named else f"{kind}{c + 1}", kind, start + c))
+                out.append(Component(sub.name, named[c] if named else f"{kind}{c + 1}", kind, start + c,
+                                     float(at[c]) if shifted else None))
     if outputs:
         for i, sub in enumerate(system.subsystems):
             named = labels.get("output", {}).get(sub.name)
             start = system.ys(i).start
+            at = sub.output_matrix @ sub.state_offset
             for c in range(sub.p):
-                out.append(Component(sub.name, named[c] if named else f"y{c + 1}", "y", start + c))
+                out.append(Component(sub.name, named[c] if named else f"y{c + 1}", "y", start + c,
+                                     float(at[c]) if shifted else None))
     return out
 
 
@@ -189,7 +200,8 @@ def unreachable(system: CoupledSystem, arrays: dict, labels: dict | None = None,
             if bad.size:
                 k = start + int(bad[0])
                 found.append({"subsystem": comp.subsystem, "component": comp.label, "k": k,
-                              "asked": float(asked[k, col]), "target": float(got[k, col]), "gap": float(gap[k])})
+                              "asked": comp.plant(asked[k, col]), "target": comp.plant(got[k, col]),
+                              "gap": float(gap[k])})
     return sorted(found, key=lambda g: g["k"])
 
 
@@ -274,7 +286,7 @@ def segment_traces(system: CoupledSystem, arrays: dict, labels: dict | None = No
             target = float(got[until - 1, col])
             floor = GAP_TOLERANCE * max(1.0, abs(a))
             entry = {"at": start, "until": until, "subsystem": comp.subsystem, "component": comp.label,
-                     "asked": a, "target": target,
+                     "asked": comp.plant(a), "target": comp.plant(target),
                      "reachable": (None if comp.kind == "y" else bool(abs(target - a) <= tolerance[until - 1, col])),
                      "step": step, "tolerance": band, "reached": bool(abs(error) <= band),
                      "settling_steps": settled, "settling_s": settled * dt if settled is not None and dt else None,
@@ -343,8 +355,8 @@ def tracking_summary(system: CoupledSystem, arrays: dict, labels: dict | None = 
             reached = x[K, comp.column] if comp.kind == "x" else u[K - 1, comp.column]
             target = float(_columns(arrays, comp.kind, "target")[K - 1, comp.column])
             reference = float(_columns(arrays, comp.kind, "reference")[K - 1, comp.column])
-        rows.append({"subsystem": comp.subsystem, "component": comp.label, "asked": float(asked),
-                     "target": target, "reference": reference, "final": float(reached),
+        rows.append({"subsystem": comp.subsystem, "component": comp.label, "asked": comp.plant(asked),
+                     "target": comp.plant(target), "reference": comp.plant(reference), "final": comp.plant(reached),
                      "error": float(reached - asked), **({"output": True} if comp.kind == "y" else {})})
     governed = np.flatnonzero(arrays["governor"] < 1.0)
     if traces is None:

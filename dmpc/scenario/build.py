@@ -12,7 +12,7 @@ import numpy as np
 from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
 from dmpc.offline.tubes import RevisionBound
 from dmpc.scenario.load import ScenarioError
-from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario, setpoint_values
+from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario, SubsystemSpec, SubsystemTemplate, setpoint_values
 from dmpc.tracking.schedule import SetpointEntry
 
 SETPOINT_TIME_TOLERANCE = 1e-9
@@ -32,19 +32,32 @@ def _symmetric(rows: list) -> np.ndarray:
 
 
 @overload
-def _linear_set(spec: BoxSpec | PolytopeSpec) -> LinearSet: ...
+def _linear_set(spec: BoxSpec | PolytopeSpec, around: np.ndarray | None = None) -> LinearSet: ...
 
 
 @overload
-def _linear_set(spec: BoxSpec | PolytopeSpec | None) -> LinearSet | None: ...
+def _linear_set(spec: BoxSpec | PolytopeSpec | None, around: np.ndarray | None = None) -> LinearSet | None: ...
 
 
-def _linear_set(spec: BoxSpec | PolytopeSpec | None) -> LinearSet | None:
+def _linear_set(spec: BoxSpec | PolytopeSpec | None, around: np.ndarray | None = None) -> LinearSet | None:
+    """The set of ``spec``; with ``around`` (d,), the set of v - around for v in it (the set in
+    deviations from an operating point)."""
     if spec is None:
         return None
     if isinstance(spec, BoxSpec):
-        return LinearSet.box(spec.lower, spec.upper)
-    return LinearSet.polytope(spec.H, spec.h)
+        if around is None:
+            return LinearSet.box(spec.lower, spec.upper)
+        return LinearSet.box(np.asarray(spec.lower, float) - around, np.asarray(spec.upper, float) - around)
+    if around is None:
+        return LinearSet.polytope(spec.H, spec.h)
+    H = np.atleast_2d(np.asarray(spec.H, float))
+    return LinearSet.polytope(H, np.asarray(spec.h, float) - H @ around)
+
+
+def operating_point(s: SubsystemTemplate) -> tuple[np.ndarray, np.ndarray] | None:
+    """The subsystem's operating point (x_op (n_i,), u_op (m_i,)) in the plant's units, or None."""
+    op = s.operating_point
+    return None if op is None else (_array(op.x), _array(op.inputs(s.m)))
 
 
 def build_system(scn: Scenario) -> CoupledSystem:
@@ -92,11 +105,7 @@ def discrete_model(scn: Scenario):
 def _system_as_written(scn: Scenario) -> CoupledSystem:
     specs = scn.resolved_subsystems()
     index = {s.name: i for i, s in enumerate(specs)}
-    subsystems = tuple(
-        Subsystem(name=s.name, A=_array(s.A), B=_array(s.B), Q=_symmetric(s.Q), R=_symmetric(s.R),
-                  x0=_array(s.x0), input_set=_linear_set(s.input), state_set=_linear_set(s.state),
-                  C=None if s.C is None or s.measures_state else _array(s.C))  # the identity as None: today's runs, bit for bit
-        for s in specs)
+    subsystems = tuple(_subsystem(s) for s in specs)
     couplings = []
     for c in scn.resolved_couplings():
         t, s = index[c.target], index[c.source]
@@ -104,6 +113,20 @@ def _system_as_written(scn: Scenario) -> CoupledSystem:
         couplings.append(Coupling(target=t, source=s, A=_array(c.A), B=B))
     edges = tuple((min(index[a], index[b]), max(index[a], index[b])) for a, b in scn.graph)
     return CoupledSystem(subsystems=subsystems, couplings=tuple(couplings), edges=edges)
+
+
+def _subsystem(s: SubsystemSpec) -> Subsystem:
+    """The subsystem ``s`` in the model's coordinates: x0 and the sets in deviations from its operating
+    point when it gives one."""
+    C = None if s.C is None or s.measures_state else _array(s.C)  # the identity as None: today's runs, bit for bit
+    op = operating_point(s)
+    if op is None:
+        return Subsystem(name=s.name, A=_array(s.A), B=_array(s.B), Q=_symmetric(s.Q), R=_symmetric(s.R),
+                         x0=_array(s.x0), input_set=_linear_set(s.input), state_set=_linear_set(s.state), C=C)
+    x_op, u_op = op
+    return Subsystem(name=s.name, A=_array(s.A), B=_array(s.B), Q=_symmetric(s.Q), R=_symmetric(s.R),
+                     x0=_array(s.x0) - x_op, input_set=_linear_set(s.input, u_op),
+                     state_set=_linear_set(s.state, x_op), C=C, x_op=x_op, u_op=u_op)
 
 
 def given_gains(scn: Scenario) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -175,11 +198,14 @@ def setpoint_entries(scenario: Scenario) -> tuple[SetpointEntry, ...]:
         sub = subs[i]
         path = f"setpoints[{e}]"
         k = int(spec.at) if scenario.dt is None else int(math.ceil(spec.at / scenario.dt - SETPOINT_TIME_TOLERANCE))
-        x = _nan_free(setpoint_values(spec, sub, "x", path))
-        u = _nan_free(setpoint_values(spec, sub, "u", path))
+        op = operating_point(sub)
+        x_op, u_op = op if op is not None else (np.zeros(sub.n), np.zeros(sub.m))
+        x = _nan_free(setpoint_values(spec, sub, "x", path)) - x_op
+        u = _nan_free(setpoint_values(spec, sub, "u", path)) - u_op
         y = None
         if spec.y is not None or scenario.estimation is not None:
-            requested = _nan_free(setpoint_values(spec, sub, "y", path))
+            y_op = x_op if sub.C is None else _array(sub.C) @ x_op
+            requested = _nan_free(setpoint_values(spec, sub, "y", path)) - y_op
             if scenario.estimation is None:  # C is the identity: outputs r are the states r
                 x = np.where(np.isnan(requested), x, requested)
             else:

@@ -288,14 +288,16 @@ class BoxSpec(_Model):
         """Dimension of the box."""
         return len(self.lower)
 
-    def origin_inside(self, path: str) -> None:
-        """Raise SpecError unless the origin is in the interior (``lower < 0 < upper``)."""
+    def origin_inside(self, path: str, point: Sequence[float] | None = None, named: str = "the origin") -> None:
+        """Raise SpecError unless ``point`` (the origin when None; ``named`` in the message) is in the
+        interior (``lower < point < upper``)."""
         for i, (lo, hi) in enumerate(zip(self.lower, self.upper)):
-            if not lo < 0:
-                raise SpecError(f"{path}.lower[{i}]", f"must be < 0 so that the set contains the origin "
+            at = 0.0 if point is None else float(point[i])
+            if not lo < at:
+                raise SpecError(f"{path}.lower[{i}]", f"must be < {at:g} so that the set contains {named} "
                                                       f"in its interior, got {lo:g}")
-            if not hi > 0:
-                raise SpecError(f"{path}.upper[{i}]", f"must be > 0 so that the set contains the origin "
+            if not hi > at:
+                raise SpecError(f"{path}.upper[{i}]", f"must be > {at:g} so that the set contains {named} "
                                                       f"in its interior, got {hi:g}")
 
 
@@ -315,12 +317,15 @@ class PolytopeSpec(_Model):
         """Dimension of the space (columns of H)."""
         return len(self.H[0])
 
-    def origin_inside(self, path: str) -> None:
-        """Raise SpecError unless the origin is in the interior (``h > 0``)."""
-        for i, value in enumerate(self.h):
-            if not value > 0:
-                raise SpecError(f"{path}.h[{i}]", f"must be > 0 so that the set contains the origin "
-                                                  f"in its interior, got {value:g}")
+    def origin_inside(self, path: str, point: Sequence[float] | None = None, named: str = "the origin") -> None:
+        """Raise SpecError unless ``point`` (the origin when None; ``named`` in the message) is in the
+        interior (``H point < h``)."""
+        for i, (row, value) in enumerate(zip(self.H, self.h)):
+            at = 0.0 if point is None else float(np.dot(row, point))
+            if not value > at:
+                times = "" if point is None else f" (row {i} of H times {named})"
+                raise SpecError(f"{path}.h[{i}]", f"must be > {at:g}{times} so that the set contains {named} in its "
+                                                  f"interior, got {value:g}")
 
 
 def _set_kind(value: object) -> str:
@@ -365,6 +370,18 @@ class LabelSpec(_Model):
         return f"{self.name} [{self.unit}]" if self.unit else self.name
 
 
+class OperatingPointSpec(_Model):
+    """The steady state a subsystem's model is linearised around, in the plant's own units."""
+
+    x: Vector = Field(description="The operating state, n_i entries in the plant's units.")
+    u: Optional[Vector] = Field(None, description="The operating inputs, m_i entries in the plant's units; "
+                                                  "omitted: zeros.")
+
+    def inputs(self, m: int) -> list[float]:
+        """``u``, or m zeros when omitted."""
+        return list(self.u) if self.u is not None else [0.0] * m
+
+
 class SubsystemTemplate(_Model):
     """The dynamics, cost and constraints of one subsystem (without its name and x0)."""
 
@@ -399,6 +416,14 @@ class SubsystemTemplate(_Model):
     outputs: Optional[list[LabelSpec]] = Field(
         None, description="Names and units of the outputs, one {name, unit} per row of C (p_i entries); omitted: "
                           "the states' names when C is omitted (or the identity), else y1, y2, ...")
+    operating_point: Optional[OperatingPointSpec] = Field(
+        None, description="The steady state the model is a linearisation around, in the plant's own units "
+                          "(levels in m, flows in m^3/h): {x: [n_i], u: [m_i]}. Given, x0, the bounds of 'state' "
+                          "and 'input' and every setpoint are in the plant's units too, the sets must contain the "
+                          "operating point (not the origin) in their interior, and the records are in the "
+                          "plant's units; A, B, Q, R and the couplings stay the model's, in deviations "
+                          "(x - operating_point.x, u - operating_point.u). Omitted: the plant's units are the "
+                          "model's (the operating point is the origin).")
 
     @property
     def n(self) -> int:
@@ -453,9 +478,14 @@ class SubsystemTemplate(_Model):
         check_definite(self.Q, "Q", strict=False)
         check_shape(self.R, (m, m), "R", f"m x m with m = {m} inputs, from B")
         check_definite(self.R, "R", strict=True)
-        _check_set(self.input, m, "input", f"m = {m} inputs, from B")
+        op = self.operating_point
+        if op is not None:
+            check_length(op.x, n, "operating_point.x", f"n = {n} states, from A")
+            if op.u is not None:
+                check_length(op.u, m, "operating_point.u", f"m = {m} inputs, from B")
+        _check_set(self.input, m, "input", f"m = {m} inputs, from B", None if op is None else op.inputs(m))
         if self.state is not None:
-            _check_set(self.state, n, "state", f"n = {n} states, from A")
+            _check_set(self.state, n, "state", f"n = {n} states, from A", None if op is None else op.x)
         if self.K is not None:
             check_shape(self.K, (m, n), "K", "m x n")
         if self.P is not None:
@@ -490,12 +520,16 @@ def _check_measurements(C: list[list[float]], n: int) -> None:
                              "combination of the others measures nothing new; remove it")
 
 
-def _check_set(spec: BoxSpec | PolytopeSpec, dim: int, path: str, what: str) -> None:
+def _check_set(spec: BoxSpec | PolytopeSpec, dim: int, path: str, what: str,
+               operating: list[float] | None = None) -> None:
     if isinstance(spec, BoxSpec):
         check_length(spec.lower, dim, f"{path}.lower", what)
     elif spec.dim != dim:
         raise SpecError(f"{path}.H", f"expected {dim} columns ({what}), got {spec.dim}")
-    spec.origin_inside(path)
+    if operating is None:
+        spec.origin_inside(path)
+    else:
+        spec.origin_inside(path, operating, f"the operating point (operating_point.{'u' if path == 'input' else 'x'})")
 
 
 class _Named(_Model):
@@ -768,9 +802,10 @@ class DiscretisationSpec(_Model):
 class DisturbanceSpec(_Model):
     """An additive disturbance w(k) on the plant: x(k+1) = A x(k) + B u(k) + w(k)."""
 
-    kind: Literal["uniform", "gaussian", "file"] = Field(
+    kind: Literal["uniform", "gaussian", "file", "step"] = Field(
         description="'uniform': w_i uniform in the box |w_i| <= bound_i; 'gaussian': normal with standard "
-                    "deviations std_i; 'file': read from 'file'.")
+                    "deviations std_i; 'file': read from 'file'; 'step': constant from 'at' on, B d_u for the "
+                    "input offsets d_u of 'input' plus the state offsets of 'state'.")
     bound: Optional[dict[Name, Vector]] = Field(
         None, description="uniform: half-widths per subsystem name (n_i entries >= 0); subsystems not listed get none.")
     std: Optional[dict[Name, Vector]] = Field(
@@ -779,18 +814,33 @@ class DisturbanceSpec(_Model):
     file: Optional[str] = Field(
         None, description="file: a .npy or .csv file with one row per step and n columns (the global state order); "
                           "a relative path is read from the scenario file's folder.")
+    at: Optional[Annotated[float, BeforeValidator(_setpoint_time)]] = Field(
+        None, description="step: the step from which the disturbance acts (w(k) for k >= at is added to x(k+1)), "
+                          "or the time in seconds when the scenario has dt (from the first step at or after it).")
+    input: Optional[dict[Name, Vector]] = Field(
+        None, description="step: offsets d_u of the inputs per subsystem name (m_i entries), entering as the "
+                          "inputs do, through B_ii and the couplings' B_ij (the actuators off by d_u): w = B d_u; "
+                          "subsystems not listed get none.")
+    state: Optional[dict[Name, Vector]] = Field(
+        None, description="step: offsets added to x_i(k+1) per subsystem name (n_i entries); subsystems not listed "
+                          "get none. A step needs 'input', 'state' or both.")
     seed: Optional[Annotated[int, Field(strict=True, ge=0)]] = Field(
         None, description="Seed of the random draws (>= 0); null uses the scenario's seed.")
 
     @model_validator(mode="after")
     def _fields_of_kind(self) -> "DisturbanceSpec":
-        needed = {"uniform": "bound", "gaussian": "std", "file": "file"}
-        for kind, field in needed.items():
-            given = getattr(self, field) is not None
-            if kind == self.kind and not given:
-                raise SpecError(field, f"required when kind is '{kind}'")
-            if kind != self.kind and given:
-                raise SpecError(field, f"only read when kind is '{kind}' (kind is '{self.kind}')")
+        needed = {"uniform": ("bound",), "gaussian": ("std",), "file": ("file",), "step": ("at", "input", "state")}
+        either = ("input", "state")  # step: one of them or both (below)
+        for kind, fields in needed.items():
+            for field in fields:
+                given = getattr(self, field) is not None
+                if kind == self.kind and not given and field not in either:
+                    raise SpecError(field, f"required when kind is '{kind}'")
+                if kind != self.kind and given:
+                    raise SpecError(field, f"only read when kind is '{kind}' (kind is '{self.kind}')")
+        if self.kind == "step" and not (self.input or self.state):
+            raise SpecError("input", "kind 'step' needs 'input' (offsets of the inputs, by subsystem name) or "
+                                     "'state' (offsets of the states), or both")
         for field in ("bound", "std"):
             for name, vec in (getattr(self, field) or {}).items():
                 for c, value in enumerate(vec):
@@ -1159,17 +1209,31 @@ def _check_fourtank(scn: Scenario) -> None:
     if scn.dt is None:
         raise SpecError("dt", "required when plant.model is 'fourtank' (the period the tanks are integrated over)")
     fourtank_positions(scn)
+    subs = scn.resolved_subsystems()
+    given = [s.operating_point is not None for s in subs]
+    if any(given):
+        if not all(given):
+            i = given.index(False)
+            raise SpecError(f"{scn.subsystem_path(i)}.operating_point", "required: another subsystem gives one, and "
+                                                                       "the tanks are then given levels and flows in "
+                                                                       "m and m^3/h, not deviations")
+        if scn.plant.fourtank is not None and "q0" in scn.plant.fourtank.model_fields_set:
+            raise SpecError("plant.fourtank.q0", "not read when the subsystems give operating_point (the levels and "
+                                                 "flows are then the plant's own): remove it")
 
 
 def _check_disturbance(spec: DisturbanceSpec | None, subs: list[SubsystemSpec], index: dict[str, int]) -> None:
     if spec is None:
         return
-    for field in ("bound", "std"):
+    for field in ("bound", "std", "state", "input"):
         for name, vec in (getattr(spec, field) or {}).items():
             path = f"plant.disturbance.{field}.{name}"
             _check_name(name, index, path)
-            n = subs[index[name]].n
-            check_length(vec, n, path, f"n = {n} states of subsystem '{name}'")
+            sub = subs[index[name]]
+            if field == "input":
+                check_length(vec, sub.m, path, f"m = {sub.m} inputs of subsystem '{name}'")
+            else:
+                check_length(vec, sub.n, path, f"n = {sub.n} states of subsystem '{name}'")
 
 
 def setpoint_values(spec: SetpointSpec, sub: SubsystemTemplate, kind: str, path: str) -> list[float | None]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -17,10 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from dmpc.core.system import CoupledSystem
-from dmpc.plant.disturbance import DisturbanceSequence, gaussian_sequence, uniform_sequence
+from dmpc.plant.disturbance import DisturbanceSequence, gaussian_sequence, step_sequence, uniform_sequence
 from dmpc.plant.fourtank import FourTank, FourTankPlant
 from dmpc.prepared import PlantFunction, PlantSetup, Prepared
 from dmpc.scenario import Scenario, ScenarioError, discrete_model
+from dmpc.scenario.build import SETPOINT_TIME_TOLERANCE
 from dmpc.scenario.schema import FourTankSpec, fourtank_positions
 from dmpc.setup.estimation import measurement_noise
 
@@ -29,10 +31,26 @@ def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantS
     """The scenario's ``plant`` section (the model, the disturbance, the measurement noise) for a run
     of ``system`` of ``steps`` steps.
 
+    Parameters
+    ----------
+    scenario : Scenario
+        The validated scenario; its ``plant`` section is read.
+    system : CoupledSystem
+        The controllers' model built from ``scenario``: the global state order of w(k), and the
+        B through which a ``step`` disturbance's input offsets enter (unless the plant is
+        ``exact``, whose own B they enter through).
+    steps : int
+        The run's length: w(k) has this many rows.
+
+    Returns
+    -------
+    PlantSetup
+
     Raises
     ------
     ScenarioError
-        A disturbance file that cannot be read or does not fit (rows < steps, columns != n).
+        A disturbance file that cannot be read or does not fit (rows < steps, columns != n); a
+        ``step`` at a fractional step in a scenario without dt.
     """
     spec = scenario.plant
     A = B = None
@@ -45,10 +63,10 @@ def plant_setup(scenario: Scenario, system: CoupledSystem, steps: int) -> PlantS
     w, kind, bound = None, "", None
     if spec.disturbance is not None:
         kind = spec.disturbance.kind
-        w = _disturbance(scenario, system, steps)
+        w = _disturbance(scenario, system, steps, system.B if B is None else B)
         if kind == "uniform":
             bound = _per_state(system, spec.disturbance.bound)
-        elif kind == "file":
+        elif kind in ("file", "step"):
             bound = DisturbanceSequence(w).bound()
     return PlantSetup(model=spec.model, A=A, B=B, disturbance=w, disturbance_kind=kind, disturbance_bound=bound,
                       function=function, function_name=function_name,
@@ -68,19 +86,23 @@ def fourtank_plant(scenario: Scenario) -> FourTankPlant:
     tanks = FourTank(area=spec.area, outlets=(spec.outlets[0], spec.outlets[1], spec.outlets[2], spec.outlets[3]),
                      gamma=(spec.gamma[0], spec.gamma[1]), g=spec.g)
     assert scenario.dt is not None  # checked by the schema for model: fourtank
-    return FourTankPlant(tanks, np.array(spec.q0), scenario.dt, tuple(states), tuple(inputs), spec.substeps)
+    # with operating points the plant function is given the levels and flows themselves (FunctionPlant):
+    # its own operating point is then no flow and empty tanks, the zeros of those units
+    q0 = np.zeros(2) if any(s.operating_point is not None for s in scenario.resolved_subsystems()) else np.array(spec.q0)
+    return FourTankPlant(tanks, q0, scenario.dt, tuple(states), tuple(inputs), spec.substeps)
 
 
-def _per_state(system: CoupledSystem, by_name: dict[str, list[float]] | None) -> np.ndarray:
-    """A global (n,) vector from per-subsystem entries, zeros for subsystems not listed."""
-    out = np.zeros(system.n)
+def _per_state(system: CoupledSystem, by_name: dict[str, list[float]] | None, inputs: bool = False) -> np.ndarray:
+    """A global (n,) vector from per-subsystem entries (with ``inputs``, a global (m,) one), zeros for
+    subsystems not listed."""
+    out = np.zeros(system.m if inputs else system.n)
     for i, s in enumerate(system.subsystems):
         if by_name and s.name in by_name:
-            out[system.xs(i)] = by_name[s.name]
+            out[system.us(i) if inputs else system.xs(i)] = by_name[s.name]
     return out
 
 
-def _disturbance(scenario: Scenario, system: CoupledSystem, steps: int) -> np.ndarray:
+def _disturbance(scenario: Scenario, system: CoupledSystem, steps: int, B: np.ndarray) -> np.ndarray:
     spec = scenario.plant.disturbance
     assert spec is not None  # called for a plant with a disturbance
     seed = scenario.seed if spec.seed is None else spec.seed
@@ -88,8 +110,41 @@ def _disturbance(scenario: Scenario, system: CoupledSystem, steps: int) -> np.nd
         return uniform_sequence(_per_state(system, spec.bound), steps, seed)
     if spec.kind == "gaussian":
         return gaussian_sequence(_per_state(system, spec.std), steps, seed)
+    if spec.kind == "step":
+        offset = B @ _per_state(system, spec.input, inputs=True) + _per_state(system, spec.state)
+        return step_sequence(offset, disturbance_start(scenario), steps)
     assert spec.file is not None  # kind "file" comes with its file (the schema)
     return read_disturbance(Path(spec.file), system.n, steps)
+
+
+def disturbance_start(scenario: Scenario) -> int:
+    """The first step k whose update x(k+1) a ``step`` disturbance of ``scenario`` is added to:
+    ``at`` itself without dt, else the first step at or after the time ``at`` (k = ceil(at / dt)), as
+    for the ``at`` of setpoints.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        A scenario whose ``plant.disturbance`` has kind ``step``.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ScenarioError
+        ``at`` is not a whole step and the scenario has no dt.
+    """
+    spec = scenario.plant.disturbance
+    assert spec is not None and spec.at is not None  # kind "step" comes with its at (the schema)
+    field = "plant.disturbance.at"
+    if scenario.dt is None:
+        if spec.at != int(spec.at):
+            raise ScenarioError(f"{field}: expected a whole step, got {spec.at:g} (the scenario has no dt, so 'at' "
+                                "counts steps)", field=field)
+        return int(spec.at)
+    return max(int(math.ceil(spec.at / scenario.dt - SETPOINT_TIME_TOLERANCE)), 0)
 
 
 def read_disturbance(path: Path, n: int, steps: int) -> np.ndarray:

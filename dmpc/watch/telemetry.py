@@ -23,6 +23,7 @@ from dmpc.bus import keys
 from dmpc.bus.interface import Broadcast, Bus
 from dmpc.core.errors import DmpcError
 from dmpc.prepared import Prepared
+from dmpc.records.plant_units import PlantUnits
 from dmpc.records.run_folder import jsonable, step_line
 from dmpc.watch.meta import meta_json
 
@@ -92,6 +93,8 @@ class Telemetry:
         The run's description (:func:`dmpc.watch.meta.meta_json`).
     meta_every : float
         Seconds between two copies of the description while an observer listens.
+    units : PlantUnits, optional
+        The run's operating point: the steps are published in the plant's units, as in ``steps.jsonl``.
 
     Attributes
     ----------
@@ -101,8 +104,10 @@ class Telemetry:
         Messages published, steps dropped because the queue was full, and failed puts.
     """
 
-    def __init__(self, publishers: dict[str, Broadcast], run_id: str, meta: dict, meta_every: float = META_EVERY) -> None:
+    def __init__(self, publishers: dict[str, Broadcast], run_id: str, meta: dict, meta_every: float = META_EVERY,
+                 units: PlantUnits | None = None) -> None:
         self.run_id = run_id
+        self._units = units
         self._publishers = dict(publishers)
         self._meta = encode("meta", run_id, meta=meta)
         self._meta_every = meta_every
@@ -173,7 +178,7 @@ class Telemetry:
                     self._put("end", self._end)
                 elif observed:
                     try:
-                        payload = encode("step", self.run_id, step=step_line(item), plant=status)
+                        payload = encode("step", self.run_id, step=step_line(item, self._units), plant=status)
                     except Exception:  # noqa: BLE001 - a record that does not encode is skipped
                         self.errors += 1
                         continue
@@ -189,4 +194,4 @@ def open_telemetry(bus: Bus, run_id: str, prepared: Prepared) -> Telemetry | Non
     publishers = {kind: p for kind, p in made.items() if p is not None}
     if len(publishers) < len(made):
         return None
-    return Telemetry(publishers, run_id, meta_json(prepared, run_id))
+    return Telemetry(publishers, run_id, meta_json(prepared, run_id), units=PlantUnits.of(prepared.system))
