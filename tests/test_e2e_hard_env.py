@@ -180,7 +180,9 @@ def _start_run(out: Path, *args: str) -> subprocess.Popen:
 
 def _no_orphans(out: Path) -> None:
     pids = json.loads((out / "processes.json").read_text()).values()
-    assert wait_for(lambda: not any(pid_alive(p) for p in pids), 5), "a child outlived the run"
+    # a hang guard, not a measure (tests/test_e2e_runtime.py times the exits): a busy machine may take
+    # seconds to let a process close its session
+    assert wait_for(lambda: not any(pid_alive(p) for p in pids), 30), "a child outlived the run"
 
 
 def test_restarted_agents_rejoin_and_fall_back_only_in_their_gaps(tmp_path):
@@ -285,7 +287,7 @@ def test_a_killed_launcher_leaves_a_summary_with_the_agents_reports(tmp_path):
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=10)
         assert wait_for(lambda: (out / "summary.json").exists() and "agent_reports_missing" in json.loads(
-            (out / "summary.json").read_text()), 15)
+            (out / "summary.json").read_text()), 60)  # a hang guard: the processes see the launcher gone
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

@@ -1,4 +1,4 @@
-"""A plant outside that reports measured outputs y_i in place of states (docs/protocol.md, "state"),
+"""A plant outside that reports measured outputs y_i in place of states (docs/protocol.md, "The plant's side"),
 on the in-memory bus: the controllers see what they see when dmpc measures y = C x itself, and the
 records hold, for those subsystems, the estimate that agrees with the measurements."""
 from __future__ import annotations

@@ -158,6 +158,10 @@ class Subsystem:
         (``x_op + x``). None (the default): the plant's units are the model's (zeros).
     u_op : ndarray, shape (m_i,), or None
         The operating point's inputs, the same way.
+    state_margin : ndarray, shape (n_i,), or None
+        Room kept for the estimation error (``estimation.margin``): ``state_set`` is the plant's
+        state set moved in by it (what the controllers keep the estimate in), and
+        :attr:`plant_state_set` the plant's own. None: no margin, the two are one.
     """
 
     name: str
@@ -171,6 +175,7 @@ class Subsystem:
     C: np.ndarray | None = None
     x_op: np.ndarray | None = None
     u_op: np.ndarray | None = None
+    state_margin: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -189,6 +194,15 @@ class Subsystem:
     def output_matrix(self) -> np.ndarray:
         """C_i, shape (p_i, n_i): the identity when C is None."""
         return np.eye(self.n) if self.C is None else np.asarray(self.C, dtype=float)
+
+    @property
+    def plant_state_set(self) -> LinearSet | None:
+        """The set the plant's state must stay in: ``state_set`` without the estimation margin (each row's
+        bounds moved out by sum_j |H_rj| margin_j)."""
+        if self.state_margin is None or self.state_set is None:
+            return self.state_set
+        widen = np.abs(np.asarray(self.state_set.H, dtype=float)) @ self.state_margin
+        return LinearSet(self.state_set.H, self.state_set.lower - widen, self.state_set.upper + widen)
 
     @property
     def state_offset(self) -> np.ndarray:

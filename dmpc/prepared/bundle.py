@@ -74,7 +74,8 @@ def bundle_json(prepared: Prepared) -> dict:
         "subsystems": [{"name": s.name, "A": s.A.tolist(), "B": s.B.tolist(), "Q": s.Q.tolist(), "R": s.R.tolist(),
                         "x0": s.x0.tolist(), "input": _set_json(s.input_set), "state": _set_json(s.state_set),
                         **({} if s.C is None else {"C": s.C.tolist()}),
-                        **({} if s.x_op is None else {"x_op": s.state_offset.tolist(), "u_op": s.input_offset.tolist()})}
+                        **({} if s.x_op is None else {"x_op": s.state_offset.tolist(), "u_op": s.input_offset.tolist()}),
+                        **({} if s.state_margin is None else {"state_margin": s.state_margin.tolist()})}
                        for s in system.subsystems],
         "couplings": [{"target": c.target, "source": c.source, "A": c.A.tolist(), "B": c.B.tolist()}
                       for c in system.couplings],
@@ -119,6 +120,11 @@ def write_bundle(prepared: Prepared, path: Path) -> None:
     Path(path).write_text(json.dumps(bundle_json(prepared)))
 
 
+def _optional_array(d: dict, key: str) -> np.ndarray | None:
+    """``d[key]`` as a float array, None when absent."""
+    return None if d.get(key) is None else np.array(d[key], float)
+
+
 def load_bundle(path: Path) -> Prepared:
     """Rebuild a Prepared from ``run.json`` at ``path`` (ValueError with a clear message if malformed)."""
     try:
@@ -129,8 +135,8 @@ def load_bundle(path: Path) -> Prepared:
                                      np.array(s["Q"], float), np.array(s["R"], float), np.array(s["x0"], float),
                                      _linear_set(s["input"]), _set_from(s["state"]),
                                      None if s.get("C") is None else np.array(s["C"], float).reshape(-1, len(s["A"])),
-                                     *((None, None) if s.get("x_op") is None else
-                                       (np.array(s["x_op"], float), np.array(s["u_op"], float))))
+                                     x_op=_optional_array(s, "x_op"), u_op=_optional_array(s, "u_op"),
+                                     state_margin=_optional_array(s, "state_margin"))
                            for s in d["subsystems"])
         couplings = tuple(Coupling(c["target"], c["source"], np.array(c["A"], float), np.array(c["B"], float))
                           for c in d["couplings"])

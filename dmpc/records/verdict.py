@@ -25,6 +25,9 @@ kind                      class     when
 ``offset``                warning   a tracked component (state, output or input) settled off the
                                     value asked at the end of its setpoint segment (below)
 ``estimator-diverging``   warning   with estimation: the innovation kept growing (below)
+``estimation-margin``     warning   with ``estimation.margin``: the estimation error |x - x^| of a
+                                    state exceeded the margin kept for it (per subsystem), so the
+                                    state bounds were not guaranteed at those steps
 ========================  ========  ==============================================================
 
 With setpoints, ``not-converged`` measures the final state from the target applied at the last
@@ -219,10 +222,11 @@ def state_bound_excess(system: CoupledSystem, x: np.ndarray) -> dict[str, float 
     """
     out: dict[str, float | None] = {}
     for i, sub in enumerate(system.subsystems):
-        if sub.state_set is None or x.shape[0] == 0:
+        plant_set = sub.plant_state_set
+        if plant_set is None or x.shape[0] == 0:
             out[sub.name] = None
             continue
-        excess = sub.state_set.excess(x[:, system.xs(i)])
+        excess = plant_set.excess(x[:, system.xs(i)])
         finite = excess[np.isfinite(excess)]
         out[sub.name] = float(finite.max()) if finite.size else None
     return out
@@ -264,8 +268,9 @@ def reference_size(system: CoupledSystem, x0: np.ndarray) -> float:
     are 0)."""
     size = float(np.max(np.abs(x0))) if x0.size else 0.0
     for sub in system.subsystems:
-        if sub.state_set is not None:
-            bounds = np.concatenate([sub.state_set.lower, sub.state_set.upper])
+        plant_set = sub.plant_state_set
+        if plant_set is not None:
+            bounds = np.concatenate([plant_set.lower, plant_set.upper])
             finite = np.abs(bounds[np.isfinite(bounds)])
             if finite.size:
                 size = max(size, float(finite.max()))
@@ -309,7 +314,7 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
     warnings: list[Finding] = []
 
     labels = labels or {}
-    failures += _bound_findings(system, x, "state-violated", "state", [s.state_set for s in system.subsystems],
+    failures += _bound_findings(system, x, "state-violated", "state", [s.plant_state_set for s in system.subsystems],
                                 [system.xs(i) for i in range(system.M)], labels.get("state", {}))
     failures += _bound_findings(system, u, "input-violated", "input", [s.input_set for s in system.subsystems],
                                 [system.us(i) for i in range(system.M)], labels.get("input", {}))
@@ -378,6 +383,8 @@ def judge(system: CoupledSystem, arrays: dict[str, np.ndarray], notes: list[str]
         warnings += _offsets(traces, "x_hat" in arrays)
     if "innovation" in arrays:
         warnings += _estimator(arrays, limits)
+    if "x_hat" in arrays:
+        warnings += _margin_exceeded(system, x, arrays["x_hat"], labels.get("state", {}))
     capped = _capped_steps(arrays, limits)
     if capped:
         change = arrays["max_change"]
@@ -526,6 +533,34 @@ def _estimator(arrays: dict[str, np.ndarray], limits: RunLimits) -> list[Finding
                                            "plant, which differs from the model more than the estimator can follow "
                                            '(docs/algorithm.md, "Offset-free tracking")', steps=[k],
                     amount=peaks[-1])]
+
+
+def _margin_exceeded(system: CoupledSystem, x: np.ndarray, x_hat: np.ndarray,
+                     labels: dict[str, tuple[str, ...]]) -> list[Finding]:
+    """``estimation-margin``: per subsystem with an estimation margin, the steps where the estimation
+    error |x(k) - x^(k)| of a state given a margin > 0 (``x`` (K+1, n), ``x_hat`` (K, n)) exceeded it by
+    more than ``BOUND_TOL`` (relative to max(1, margin)), with the largest excess and the state it was in."""
+    found = []
+    K = x_hat.shape[0]
+    for i, sub in enumerate(system.subsystems):
+        if sub.state_margin is None or K == 0:
+            continue
+        error = np.abs(x[:K, system.xs(i)] - x_hat[:, system.xs(i)])
+        # a state given no margin (0) is not judged: nothing was promised for it
+        excess = np.where(sub.state_margin > 0, error - sub.state_margin, -np.inf)
+        bad = np.flatnonzero((excess > BOUND_TOL * np.maximum(1.0, sub.state_margin)).any(axis=1))
+        if not bad.size:
+            continue
+        k, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+        named = labels.get(sub.name)
+        state = named[j] if named else f"x{j + 1}"
+        found.append(Finding("estimation-margin", f"the estimation error of {state} of subsystem {sub.name} reached "
+                                                  f"{error[k, j]:.3g}, over its margin {sub.state_margin[j]:g}, at "
+                                                  f"{bad.size} step(s) (first k = {int(bad[0])}): the state bounds "
+                                                  "are not guaranteed there (docs/algorithm.md, \"Offset-free "
+                                                  "tracking\")", sub.name, [int(b) for b in bad],
+                             float(excess[k, j])))
+    return found
 
 
 def _capped_steps(arrays: dict[str, np.ndarray], limits: RunLimits) -> list[int]:

@@ -4,6 +4,7 @@ Subsystems are indexed 0..M-1 in file order (a family: "1".."M" -> 0..M-1).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import overload
 
@@ -12,7 +13,15 @@ import numpy as np
 from dmpc.core.system import CoupledSystem, Coupling, LinearSet, Subsystem
 from dmpc.offline.tubes import RevisionBound
 from dmpc.scenario.load import ScenarioError
-from dmpc.scenario.schema import BoxSpec, PolytopeSpec, Scenario, SubsystemSpec, SubsystemTemplate, setpoint_values
+from dmpc.scenario.schema import (
+    BoxSpec,
+    PolytopeSpec,
+    Scenario,
+    SubsystemSpec,
+    SubsystemTemplate,
+    setpoint_values,
+    state_margin,
+)
 from dmpc.tracking.schedule import SetpointEntry
 
 SETPOINT_TIME_TOLERANCE = 1e-9
@@ -105,7 +114,8 @@ def discrete_model(scn: Scenario):
 def _system_as_written(scn: Scenario) -> CoupledSystem:
     specs = scn.resolved_subsystems()
     index = {s.name: i for i, s in enumerate(specs)}
-    subsystems = tuple(_subsystem(s) for s in specs)
+    margin = None if scn.estimation is None else scn.estimation.margin
+    subsystems = tuple(_with_margin(_subsystem(s), state_margin(margin, s)) for s in specs)
     couplings = []
     for c in scn.resolved_couplings():
         t, s = index[c.target], index[c.source]
@@ -127,6 +137,17 @@ def _subsystem(s: SubsystemSpec) -> Subsystem:
     return Subsystem(name=s.name, A=_array(s.A), B=_array(s.B), Q=_symmetric(s.Q), R=_symmetric(s.R),
                      x0=_array(s.x0) - x_op, input_set=_linear_set(s.input, u_op),
                      state_set=_linear_set(s.state, x_op), C=C, x_op=x_op, u_op=u_op)
+
+
+def _with_margin(sub: Subsystem, margin: list[float] | None) -> Subsystem:
+    """``sub`` whose controllers keep ``margin`` (n_i,) from its state bounds for the estimation error
+    (``estimation.margin``); ``sub`` itself without one (or a margin of zeros)."""
+    if margin is None or not any(margin) or sub.state_set is None:
+        return sub
+    e = _array(margin)
+    shrink = np.abs(np.asarray(sub.state_set.H, dtype=float)) @ e
+    tightened = LinearSet(sub.state_set.H, sub.state_set.lower + shrink, sub.state_set.upper - shrink)
+    return dataclasses.replace(sub, state_set=tightened, state_margin=e)
 
 
 def given_gains(scn: Scenario) -> tuple[list[np.ndarray], list[np.ndarray]]:

@@ -952,6 +952,12 @@ class EstimationSpec(_Model):
                                   "'input' (one constant offset per own input); one for every subsystem, or a map "
                                   f"subsystem name -> kind (the others '{DEFAULT_KIND}').")
     noise: NoiseSpec = Field(default_factory=NoiseSpec, description="The filters' noise weights.")
+    margin: Optional[PerSubsystemVector] = Field(
+        None, description="Room the controllers keep for the estimation error, per state in the state's units "
+                          "(>= 0): they keep the estimate x^ within the state bounds moved in by it, so the plant's "
+                          "state stays within the bounds while |x - x^| <= margin (the verdict warns when it was "
+                          "not). One number for every state, or a map subsystem name -> n_i entries (subsystems "
+                          "not listed: none). Omitted: none.")
 
 
 class MeasurementNoiseSpec(_Model):
@@ -1072,7 +1078,7 @@ class Scenario(_Model):
         _check_time(self)
         _check_disturbance(self.plant.disturbance, subs, index)
         _check_measurements_need_estimation(self, subs)
-        _check_estimation(self.estimation, index)
+        _check_estimation(self.estimation, index, subs, self)
         _check_measurement_noise(self.plant.measurement_noise, subs, index)
         _check_setpoints(self, subs, index)
         _check_trigger(self, index)
@@ -1365,7 +1371,8 @@ def _check_measurements_need_estimation(scn: Scenario, subs: list[SubsystemSpec]
                                                           "measure every state")
 
 
-def _check_estimation(spec: EstimationSpec | None, index: dict[str, int]) -> None:
+def _check_estimation(spec: EstimationSpec | None, index: dict[str, int], subs: list[SubsystemSpec],
+                      scn: Scenario) -> None:
     if spec is None:
         return
     maps = [("estimation.disturbance", spec.disturbance)]
@@ -1373,6 +1380,47 @@ def _check_estimation(spec: EstimationSpec | None, index: dict[str, int]) -> Non
     for where, value in maps:
         for name in (value if isinstance(value, dict) else {}):
             _check_name(name, index, f"{where}.{name}")
+    margin = spec.margin
+    if isinstance(margin, dict):
+        for name, vec in margin.items():
+            _check_name(name, index, f"estimation.margin.{name}")
+            n = subs[index[name]].n
+            check_length(vec, n, f"estimation.margin.{name}", f"n = {n} states of subsystem '{name}'")
+    for i, sub in enumerate(subs):
+        values = state_margin(margin, sub)
+        if values is None or not any(values):
+            continue
+        if sub.state is None:
+            raise SpecError(f"estimation.margin.{sub.name}", f"subsystem '{sub.name}' has no state bounds to keep a "
+                                                             "margin from: remove its margin")
+        at = list(sub.operating_point.x) if sub.operating_point is not None else [0.0] * sub.n
+        try:
+            _margin_set(sub.state, values).origin_inside(
+                f"{scn.subsystem_path(i)}.state", at,
+                "the operating point" if sub.operating_point is not None else "the origin")
+        except SpecError as exc:
+            raise SpecError(f"estimation.margin.{sub.name}", f"too large: the state bounds moved in by it leave no room "
+                                                             f"around the target ({exc.path}: {exc.message})") from None
+
+
+def state_margin(margin: float | dict[str, list[float]] | None, sub: SubsystemTemplate | SubsystemSpec) -> list[float] | None:
+    """The estimation margin of the subsystem ``sub`` (n_i values), from ``estimation.margin``: None without one."""
+    if margin is None:
+        return None
+    if isinstance(margin, dict):
+        name = getattr(sub, "name", None)
+        return list(margin[name]) if name in margin else None
+    return [float(margin)] * sub.n
+
+
+def _margin_set(spec: BoxSpec | PolytopeSpec, margin: list[float]) -> BoxSpec | PolytopeSpec:
+    """``spec`` moved in by the box ``margin``: each bound of a box by its state's margin, each row h_r of a
+    polytope by sum_j |H_rj| margin_j."""
+    if isinstance(spec, BoxSpec):
+        return BoxSpec.model_construct(lower=[lo + e for lo, e in zip(spec.lower, margin)],
+                                       upper=[hi - e for hi, e in zip(spec.upper, margin)])
+    return PolytopeSpec.model_construct(H=spec.H, h=[h - sum(abs(a) * e for a, e in zip(row, margin))
+                                                     for row, h in zip(spec.H, spec.h)])
 
 
 def _check_measurement_noise(spec: MeasurementNoiseSpec | None, subs: list[SubsystemSpec],
