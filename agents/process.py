@@ -21,6 +21,7 @@ from dmpc.methods import method_spec
 from dmpc.prepared import Prepared
 from dmpc.records.agent_reports import FIRST_RELEASE
 from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from dmpc.terminal.signals import ignore_further_interrupts
 
 log = logging.getLogger("dmpc.agent")
 
@@ -106,6 +107,7 @@ def run_agents(prepared: Prepared, names: Sequence[str], bus: Bus, run_id: str, 
     try:
         serve(nodes, bus, run_id, startup_timeout, changes, ends)
     except KeyboardInterrupt:
+        ignore_further_interrupts()  # the reports below must be written whole
         for name, node in nodes.items():
             ends.setdefault(name, (EXIT_INTERRUPTED, f"agent {name}: interrupted after {node.solves} solves"))
     outcomes = []

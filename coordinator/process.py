@@ -2,9 +2,14 @@
 process on the Zenoh bus."""
 from __future__ import annotations
 
+import json
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+
+import psutil
 
 from dmpc.bus.interface import Bus
 from dmpc.coordinator.barrier import Coordinator
@@ -19,14 +24,17 @@ from dmpc.plant.dynamics import Plant
 from dmpc.plant.models import make_plant
 from dmpc.prepared import Prepared
 from dmpc.records.agent_reports import merge_agent_reports, report_path
-from dmpc.records.files import LOGS, STEP_LOG
+from dmpc.records.files import LOGS, PROCESSES, STEP_LOG
 from dmpc.records.run_folder import RecordWriteError
 from dmpc.records.session import RunRecorder
 from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_VERDICT
+from dmpc.terminal.signals import interrupts_held
 from dmpc.tracking.tracker import Tracker
 
 LINGER = 2.0
-REPORT_WAIT = 1.0
+REPORT_WAIT = 30.0
+"""The most seconds to wait for the agents' reports once they have left: a guard against a hang, not
+a measure; the wait ends as soon as every report is in or no other process of the run is alive."""
 STOP_REPEAT = 0.2
 
 
@@ -143,9 +151,13 @@ def run_coordinator(prepared: Prepared, recorder: RunRecorder, bus: Bus, run_id:
         finish(bus, node, kept, telemetry, recorder)
         return CoordinatorOutcome(EXIT_FAILED, reason, kept)
     except KeyboardInterrupt:
-        node.abort("aborted")
-        summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", **node.counts())
-        finish(bus, node, summary, telemetry, recorder)
+        # the records of an interrupted run are written whole: a second signal (the launcher's death
+        # reaches a process more than once, an impatient Ctrl-C) must not cut them short; bounded by
+        # finish()'s own waits
+        with interrupts_held():
+            node.abort("aborted")
+            summary = recorder.complete(**outside, runtime=runtime, aborted="interrupted", **node.counts())
+            finish(bus, node, summary, telemetry, recorder)
         return CoordinatorOutcome(EXIT_INTERRUPTED, f"{node.who}: interrupted after {coordinator.k} steps", summary)
     summary = recorder.complete(**outside, runtime=runtime, failure=node.failure or None, **node.counts())
     finish(bus, node, summary, telemetry, recorder)
@@ -177,19 +189,44 @@ def finish(bus: Bus, node: CoordinatorNode, summary: dict | None, telemetry: Run
     recorder : RunRecorder, optional
         The run folder's writer, whose folder gets the agents' reports merged into its summary.
     """
-    if telemetry is not None and summary is not None:
-        telemetry.summary(summary)
-    try:
-        linger(bus, node)
-    finally:
-        if telemetry is not None:
-            telemetry.close()
+    with interrupts_held():  # bounded by LINGER: a second signal must not cut the agents' goodbye short
+        if telemetry is not None and summary is not None:
+            telemetry.summary(summary)
+        try:
+            linger(bus, node)
+        finally:
+            if telemetry is not None:
+                telemetry.close()
     if summary is not None and recorder is not None and (recorder.folder.path / LOGS).is_dir():
         out = recorder.folder.path
         deadline = time.monotonic() + REPORT_WAIT  # an agent writes its report just after leaving
-        while time.monotonic() < deadline and not all(report_path(out, n).exists() for n in node.names):
-            time.sleep(0.02)
-        merge_agent_reports(out, node.names)
+        try:
+            while time.monotonic() < deadline and not _reports_settled(out, node.names):
+                time.sleep(0.02)
+        except KeyboardInterrupt:
+            pass  # asked again to stop: merge what is there (the launcher merges again if it lives)
+        with interrupts_held():
+            merge_agent_reports(out, node.names)
+
+
+def _reports_settled(out: Path, names: list[str]) -> bool:
+    """Whether the agents' reports in the run folder ``out`` are all there, or no other process of the
+    run (``processes.json``) is alive, so none will come; an agent that was killed writes none."""
+    if all(report_path(out, n).exists() for n in names):
+        return True
+    try:
+        pids = [int(pid) for pid in json.loads((out / PROCESSES).read_text()).values()]
+    except (OSError, ValueError, TypeError, AttributeError):
+        return False  # no list of processes: wait for the reports (to the deadline)
+    return not any(_alive(pid) for pid in pids if pid != os.getpid())
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie does not)."""
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
 
 
 def linger(bus: Bus, node: CoordinatorNode, timeout: float = LINGER) -> None:

@@ -26,7 +26,7 @@ import sys as _sys
 def _interrupts_end_the_command_while_it_imports() -> None:
     """If this interpreter runs the ``dmpc`` command (its script, or ``python -m dmpc.cli``),
     SIGINT and SIGTERM end it with ``error: interrupted`` and exit code 130 until the command
-    sets its own handlers (:func:`dmpc.runtime.signals.sigterm_as_interrupt`).
+    sets its own handlers (:func:`dmpc.terminal.signals.sigterm_as_interrupt`).
 
     The command's imports take most of a second, in which Python would print a KeyboardInterrupt
     traceback, or die of SIGTERM without a word; nothing has been started yet, so the process

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from dmpc.runtime.launcher import Child, interrupted_message, stop_all
-from dmpc.runtime.signals import interrupts_deferred, interrupts_held, sigterm_as_interrupt
+from dmpc.terminal.signals import interrupts_deferred, interrupts_held, sigterm_as_interrupt
 from tests.e2e_helpers import DMPC, ROOT, pid_alive, wait_for
 
 
@@ -53,7 +53,7 @@ def test_a_signal_during_a_deferred_block_is_raised_at_its_end(launcher_signals)
 
 DROPPED = textwrap.dedent("""
     import gc, os, signal, subprocess, sys, time, weakref
-    from dmpc.runtime.signals import interrupts_deferred, raise_if_interrupted, sigterm_as_interrupt
+    from dmpc.terminal.signals import interrupts_deferred, raise_if_interrupted, sigterm_as_interrupt
 
     sigterm_as_interrupt()
     where = sys.argv[1]
@@ -100,7 +100,7 @@ def test_an_interrupt_python_drops_is_not_lost(where, said):
 def test_without_the_command_handlers_nothing_is_raised_later():
     """A program that imported dmpc keeps its own handlers: no check raises on its behalf."""
     probe = ("import os, signal, time\n"
-             "from dmpc.runtime.signals import raise_if_interrupted\n"
+             "from dmpc.terminal.signals import raise_if_interrupted\n"
              "signal.signal(signal.SIGINT, lambda *a: None)\n"
              "os.kill(os.getpid(), signal.SIGINT); time.sleep(0.05)\n"
              "raise_if_interrupted(); print('fine')\n")

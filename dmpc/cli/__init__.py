@@ -17,8 +17,8 @@ from dmpc.core.errors import InputError
 from dmpc.plant.models import PlantModelError
 from dmpc.records.files import STEP_LOG
 from dmpc.records.run_folder import RecordWriteError
-from dmpc.runtime import signals
-from dmpc.terminal import console
+from dmpc.runtime.output import guard_output
+from dmpc.terminal import console, signals
 from dmpc.terminal.console import error_line, silence_c_stdout
 from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED
 
@@ -68,6 +68,7 @@ def main() -> None:
     """Console entry point: maps expected errors to one line and exit code 2."""
     signals.sigterm_as_interrupt()  # from the start: SIGTERM during the design ends the process cleanly too
     silence_c_stdout()
+    guard_output()  # a child of `dmpc run` outlives its launcher's pipes (dmpc.runtime.output)
     code = _run_app()
     zenoh_bus = sys.modules.get("dmpc.bus.zenoh_bus")
     interrupted = code == EXIT_INTERRUPTED and signals.handles_interrupts()

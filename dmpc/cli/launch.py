@@ -38,7 +38,7 @@ from dmpc.cli.common import (
     with_model,
 )
 from dmpc.methods import method_spec
-from dmpc.runtime import signals
+from dmpc.terminal import signals
 from dmpc.terminal.console import error_line, stdout_console
 from dmpc.terminal.exit_codes import EXIT_INTERRUPTED
 

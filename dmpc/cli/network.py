@@ -46,8 +46,8 @@ from dmpc.cli.common import (
     with_model,
 )
 from dmpc.records.run_folder import write_json
-from dmpc.runtime import signals
 from dmpc.runtime.memory import settle_after_startup
+from dmpc.terminal import signals
 from dmpc.terminal.console import error_line
 from dmpc.terminal.exit_codes import EXIT_FAILED, EXIT_INPUT, EXIT_INTERRUPTED
 

@@ -34,8 +34,9 @@ import time
 from collections.abc import Callable
 
 from dmpc.core.errors import DmpcError
-from dmpc.runtime.signals import interrupts_deferred, sigterm_as_interrupt
+from dmpc.runtime.output import LOG_ENV
 from dmpc.terminal.exit_codes import EXIT_INTERRUPTED
+from dmpc.terminal.signals import interrupts_deferred, sigterm_as_interrupt
 
 PRELOAD = ("dmpc.agents.process", "dmpc.bus.zenoh_bus", "dmpc.prepared.bundle")
 """Modules the server imports before forking: everything ``dmpc agent`` needs (with the command
@@ -44,9 +45,10 @@ READY_TIMEOUT = 60.0
 """Seconds the launcher waits for the server's imports before starting agents with exec instead."""
 REAP_EVERY = 0.02
 """Seconds between the server's checks for exited agents (the latency of an exit code)."""
-STRAY_GRACE = 2.0
+STRAY_GRACE = 10.0
 """Seconds the server gives its agents to end after SIGTERM once the launcher has closed its end,
-before it kills them."""
+before it kills them: the wait ends when they have (well under a second, their reports written);
+the grace bounds a hung one, and leaves a machine that is busy time to let them finish."""
 _MAX_MESSAGE = 1 << 20
 _PR_SET_PDEATHSIG = 1
 _PR_SET_NAME = 15
@@ -133,16 +135,19 @@ class ForkServer:
             if wanted(message):
                 return message
 
-    def spawn(self, args: list[str], output: int) -> ForkedProcess:
-        """Fork ``dmpc ARGS`` (``args``) with stdout and stderr on file descriptor ``output``."""
-        forked = self.spawn_all([(args, output)])[0]
+    def spawn(self, args: list[str], output: int, log: str | None = None) -> ForkedProcess:
+        """Fork ``dmpc ARGS`` (``args``) with stdout and stderr on file descriptor ``output`` (and its
+        output guarded for ``log``, :func:`dmpc.runtime.output.guard_output`)."""
+        forked = self.spawn_all([(args, output, log)])[0]
         if forked is None:
             raise ForkServerError("the fork server could not fork")
         return forked
 
-    def spawn_all(self, requests: list[tuple[list[str], int]]) -> list[ForkedProcess | None]:
-        """Fork ``dmpc ARGS`` for each (ARGS, output descriptor), all requests sent before any
-        answer is read (the server forks them as one burst); None where a fork failed.
+    def spawn_all(self, requests: list[tuple[list[str], int, str | None]]) -> list[ForkedProcess | None]:
+        """Fork ``dmpc ARGS`` for each (ARGS, output descriptor, log file or None), all requests sent
+        before any answer is read (the server forks them as one burst); None where a fork failed.
+        The log file is where the child's output goes should the descriptor's reader be gone
+        (:mod:`dmpc.runtime.output`).
 
         Raises ForkServerError if the server is gone before any was forked.
         """
@@ -150,8 +155,8 @@ class ForkServer:
 
         def send_all() -> None:  # on its own thread: the answers are read meanwhile, so no buffer fills up
             try:
-                for args, output in requests:
-                    socket.send_fds(self._sock, [json.dumps({"argv": list(args)}).encode()], [output])
+                for args, output, log in requests:
+                    socket.send_fds(self._sock, [json.dumps({"argv": list(args), "log": log}).encode()], [output])
             except OSError as exc:
                 failed.append(exc)
 
@@ -327,7 +332,8 @@ def _fork_burst(sock: socket.socket, children: set[int], main: Callable[[], None
                 open_ = False
                 break
             try:
-                argv = json.loads(data)["argv"]
+                request = json.loads(data)
+                argv, log = request["argv"], request.get("log")
                 server = os.getpid()
                 pid = os.fork()
             except Exception as exc:  # noqa: BLE001
@@ -337,7 +343,7 @@ def _fork_burst(sock: socket.socket, children: set[int], main: Callable[[], None
                 continue
             if pid == 0:
                 os.close(release)
-                _child(sock, fds[0], argv, gate, main, server)  # never returns
+                _child(sock, fds[0], argv, gate, main, server, log)  # never returns
             children.add(pid)
             for f in fds:
                 os.close(f)
@@ -381,10 +387,10 @@ def _reap(sock: socket.socket, children: set[int], block: bool = False) -> None:
 
 
 def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: Callable[[], None],
-           server: int) -> None:
-    """In the forked agent: its own output, default signals, tied to the server (pid ``server``),
-    then ``dmpc ARGV`` once ``gate`` (a pipe's read end) reports the end of the burst, or the
-    server's end."""
+           server: int, log: str | None = None) -> None:
+    """In the forked agent: its own output (guarded for the ``log`` file, :mod:`dmpc.runtime.output`),
+    default signals, tied to the server (pid ``server``), then ``dmpc ARGV`` once ``gate`` (a pipe's
+    read end) reports the end of the burst, or the server's end."""
     code = 1
     try:
         sock.close()
@@ -401,6 +407,8 @@ def _child(sock: socket.socket, output: int, argv: list[str], gate: int, main: C
         _name_process(b"dmpc-" + " ".join(argv[:1]).encode())
         if os.getppid() != server:
             os._exit(1)  # the server died before the agent was tied to it (the gate opens then too)
+        if log:
+            os.environ[LOG_ENV] = log  # the command guards its output with it (dmpc.cli.main)
         sys.argv = ["dmpc", *argv]
         main()
         code = 0

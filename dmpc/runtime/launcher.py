@@ -26,13 +26,14 @@ from dmpc.records.run_folder import RunFolderError, claim_folder, write_error, w
 from dmpc.runtime.forkserver import ForkedProcess, ForkServer, ForkServerError
 from dmpc.runtime.hosting import HOST_PREFIX, group_agents
 from dmpc.runtime.logpump import LogPump
-from dmpc.runtime.signals import interrupts_deferred, interrupts_held, raise_if_interrupted
+from dmpc.runtime.output import LOG_ENV
 from dmpc.runtime.supervisor import RestartPolicy, Supervision, Supervisor, restart_note
 from dmpc.scenario import dump_resolved
 from dmpc.security.acl import ACL_FILE
 from dmpc.terminal.console import stderr_console
 from dmpc.terminal.exit_codes import EXIT_ADDRESS_IN_USE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from dmpc.terminal.progress import ProgressBar
+from dmpc.terminal.signals import interrupts_deferred, interrupts_held, raise_if_interrupted
 
 STOP_GRACE = 3.0
 DMPC = (sys.executable, "-m", "dmpc.cli")
@@ -221,7 +222,8 @@ def _fork_all(children: list[Child], pump: LogPump, forks: ForkServer) -> None:
     pumped = set()
     try:
         try:
-            forked = forks.spawn_all([(c.cmd[3:], write_end) for c, (_, write_end) in zip(children, pipes)])
+            forked = forks.spawn_all([(c.cmd[3:], write_end, str(c.log_path))
+                                      for c, (_, write_end) in zip(children, pipes)])
         except ForkServerError:
             forked = [None] * len(children)
         for child, proc, (read_end, _) in zip(children, forked, pipes):
@@ -247,7 +249,7 @@ def spawn(child: Child, pump: LogPump | None = None, forks: ForkServer | None = 
     if forks is not None and pump is not None and _forkable(child) and forks.alive:
         read_end, write_end = os.pipe()
         try:
-            child.proc = forks.spawn(child.cmd[3:], write_end)
+            child.proc = forks.spawn(child.cmd[3:], write_end, str(child.log_path))
         except ForkServerError:
             os.close(read_end)  # started with exec below
         else:
@@ -267,6 +269,7 @@ def spawn(child: Child, pump: LogPump | None = None, forks: ForkServer | None = 
             log.close()
         return
     read_end, write_end = os.pipe()
+    env[LOG_ENV] = str(child.log_path)  # where its output goes should this process die (dmpc.runtime.output)
     try:
         with interrupts_deferred():
             try:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-import dmpc.runtime.signals
+import dmpc.terminal.signals
 from dmpc import cli
 
 
@@ -15,7 +15,7 @@ def call(monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
     """
     monkeypatch.setattr(sys, "argv", ["dmpc", *argv])
     monkeypatch.setattr("dmpc.terminal.console._silenced", True)
-    monkeypatch.setattr(dmpc.runtime.signals, "sigterm_as_interrupt", lambda: None)
+    monkeypatch.setattr(dmpc.terminal.signals, "sigterm_as_interrupt", lambda: None)
     code = 0
     try:
         cli.main()

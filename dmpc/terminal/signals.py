@@ -86,6 +86,17 @@ def interrupts_deferred():
         raise KeyboardInterrupt
 
 
+def ignore_further_interrupts() -> None:
+    """Ignore SIGINT and SIGTERM from now on: the process, interrupted once, is shutting down (a
+    bounded shutdown: its records written, its report, its session closed), and a second signal
+    would cut its records short. The death of ``dmpc run``'s launcher can reach a process more than
+    once. Only a dmpc command's main thread does so (with :func:`sigterm_as_interrupt`'s handler
+    in place): a program that imported dmpc keeps its own handlers."""
+    if handles_interrupts() and threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
+
+
 @contextlib.contextmanager
 def interrupts_held():
     """Ignore SIGINT and SIGTERM for the duration (a bounded shutdown that a second Ctrl-C must not
