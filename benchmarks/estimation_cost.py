@@ -44,7 +44,6 @@ import re
 import secrets
 import sys
 import tempfile
-import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -58,7 +57,8 @@ import scipy.sparse as sp
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dmpc.bench.common import calibration_ms, load_average, machine, sample_memory  # noqa: E402
+from dmpc.bench.common import calibration_ms, load_average, machine  # noqa: E402
+from dmpc.bench.scale import launch_sampled  # noqa: E402
 from dmpc.coordinator.estimation import Estimation  # noqa: E402
 from dmpc.core.errors import DesignError  # noqa: E402
 from dmpc.estimation.kalman import EstimatorDesign  # noqa: E402
@@ -67,8 +67,6 @@ from dmpc.estimation.observer import Observer  # noqa: E402
 from dmpc.estimation.targets import OffsetFreeTargets  # noqa: E402
 from dmpc.evaluation.compare import timed_run  # noqa: E402
 from dmpc.records.files import SUMMARY, TRAJECTORY  # noqa: E402
-from dmpc.runtime.hosting import group_agents  # noqa: E402
-from dmpc.runtime.launcher import default_topology, launch  # noqa: E402
 from dmpc.scenario import build_system, load_scenario  # noqa: E402
 from dmpc.setup import prepare  # noqa: E402
 from dmpc.setup.estimation import design_estimation, estimation_model  # noqa: E402
@@ -366,22 +364,8 @@ def hosted_run(prepared, per_process: int, folder: Path, startup_timeout: float)
     """``prepared`` as processes of ``per_process`` agents (``dmpc run --agents-per-process``) into the
     run folder ``folder``, each process waiting at most ``startup_timeout`` seconds to start, their
     memory sampled: step times from the plant's records (k >= 1), start-up, peak RSS."""
-    hosts = group_agents(prepared.names, per_process)
-    peak: dict[str, tuple[float, float]] = {}
-    done = threading.Event()
-
-    def sample() -> None:
-        while not done.wait(max(0.25, SAMPLE_PER_PROCESS * (len(hosts) + 1))):
-            sample_memory(folder, peak)
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
-    try:
-        result = launch(prepared, folder, f"estimate-{secrets.token_hex(4)}", startup_timeout=startup_timeout,
-                        show_progress=False, topology=default_topology(len(hosts)), agents_per_process=per_process)
-    finally:
-        done.set()
-        sampler.join()
+    result, peak, processes = launch_sampled(prepared, folder, f"estimate-{secrets.token_hex(4)}", per_process,
+                                             startup_timeout)
     if result.code != 0 or not (folder / TRAJECTORY).is_file():
         return {"completed": False, "reason": result.message[-400:]}
     summary = json.loads((folder / SUMMARY).read_text())
@@ -390,7 +374,7 @@ def hosted_run(prepared, per_process: int, folder: Path, startup_timeout: float)
     return {"completed": True, **step_figures(step_s), "verdict": summary.get("verdict"),
             "fallbacks": summary.get("fallbacks"), "cost": summary.get("closed_loop_cost"),
             "startup_s": summary.get("startup_s"), "plant_rss_mb": peak.get("plant", (None, None))[0],
-            "agent_rss_mb": max(agents) if agents else None, "processes": len(hosts)}
+            "agent_rss_mb": max(agents) if agents else None, "processes": processes}
 
 
 def replay(estimated, folder: Path) -> dict:

@@ -434,13 +434,14 @@ class Coordinator:
 
     def _complete_step(self, pending: PendingStep, x_next: np.ndarray) -> list[Action]:
         """The step's record with x(k+1) (shape (n,)), then the next step's release (or the end)."""
-        if self._outputs:
-            # the state a plant outside did not report is recorded as the estimate that agrees with its
-            # outputs, so the estimate of step k + 1 comes first (it is computed once, here)
-            assert self._estimation is not None  # outputs are accepted with estimation only
+        if self._estimation is not None:
+            # the estimate of step k + 1 comes before the record: a state a plant outside did not report
+            # (only its outputs) is recorded as the estimate that agrees with them
             self._estimate = self._estimation.update(pending.k + 1, pending.u,
                                                      self._estimation.measure(pending.k + 1, x_next, self._outputs))
-            x_next = self._x = self._estimation.recorded(x_next, self._estimate)
+            x_next = self._estimation.recorded(x_next, self._estimate)
+            if self.plant is None:
+                self._x = x_next
         actions: list[Action] = [StepCompleted(partial(pending.record, x_next.copy(), self._now() - self._opened_at,
                                                        self.system))]
         self.terminal = pending.terminal
@@ -450,9 +451,6 @@ class Coordinator:
             self.finished = True
             actions.append(RunFinished("finished"))
             return actions
-        if self._estimation is not None and not self._outputs:
-            y = self._estimation.measure(self._step.k, x_next)
-            self._estimate = self._estimation.update(self._step.k, pending.u, y)
         self._combiner.step_started(self._step, self.x, self.terminal)
         actions.extend(self._release_round())
         return actions

@@ -70,18 +70,23 @@ class SetpointIntake:
         assert self.tracker is not None  # checked by problem()
         entry = self._entry(msg, first_undecided)
         self.tracker.add(entry)
-        i = self.index[msg.subsystem]
-        x, u = _request_part(msg.x, self.system.subsystems[i].n), _request_part(msg.u, self.system.subsystems[i].m)
+        x, u = self._asked(msg)
         note = (f"setpoint from {msg.sender} (id {msg.id}): subsystem {msg.subsystem} "
                 f"{_components_text('x', x)}, {_components_text('u', u)} from step {entry.at}")
         return SetpointAnswer(self.run_id, msg.id, msg.subsystem, True, entry.at), note
+
+    def _asked(self, msg: Setpoint) -> tuple[np.ndarray, np.ndarray]:
+        """The states (n_i,) and inputs (m_i,) the request ``msg`` asks for, NaN where free, in the
+        plant's units as sent (its subsystem and sizes checked by :meth:`problem`)."""
+        sub = self.system.subsystems[self.index[msg.subsystem]]
+        return _request_part(msg.x, sub.n), _request_part(msg.u, sub.m)
 
     def _entry(self, msg: Setpoint, at: int) -> SetpointEntry:
         """The schedule's entry of the request ``msg`` (checked by :meth:`problem`) from step ``at``, in
         the model's deviations (the request is in the plant's units)."""
         i = self.index[msg.subsystem]
         sub = self.system.subsystems[i]
-        x, u = _request_part(msg.x, sub.n), _request_part(msg.u, sub.m)
+        x, u = self._asked(msg)
         if sub.x_op is not None:
             x, u = x - sub.state_offset, u - sub.input_offset
         if self.tracker is not None and self.tracker.outputs is not None:

@@ -68,6 +68,7 @@ class PlantLink:
         self._deadline: Timer | None = None
         self._stopped = False
         self._sources = frozenset(self.sources)
+        self._operating_outputs = {s.name: s.operating_output for s in system.subsystems}  # C_i x_op, per subsystem
         bus.subscribe(keys.state_prefix(run_id), self._on_state)  # not hot: the plans are (one hot wait)
 
     @property
@@ -134,14 +135,10 @@ class PlantLink:
 
     def _around_operating_point(self, measured: Measurement) -> Measurement:
         """``measured`` (in the plant's units) in the model's deviations from the operating point."""
-        system = self.system
-        if not system.has_operating_point:
+        if not self.system.has_operating_point:
             return measured
-        outputs = {}
-        for name, y in measured.y.items():
-            sub = system.subsystems[self.names.index(name)]
-            outputs[name] = y - sub.output_matrix @ sub.state_offset
-        return Measurement(measured.x - system.state_offset, outputs)
+        outputs = {name: y - self._operating_outputs[name] for name, y in measured.y.items()}
+        return Measurement(measured.x - self.system.state_offset, outputs)
 
     def _drop(self, source: str, why: str) -> None:
         """Count a dropped state and keep why, to name it if the step's state never completes."""

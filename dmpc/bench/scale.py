@@ -20,11 +20,42 @@ from dmpc.bench.common import calibration_ms, closed_loop, prepare_chain, sample
 from dmpc.core.central_qp import CentralQP
 from dmpc.records.files import SUMMARY, TRAJECTORY
 from dmpc.runtime.hosting import group_agents
-from dmpc.runtime.launcher import default_topology, launch
+from dmpc.runtime.launcher import LaunchResult, default_topology, launch
 
 SAMPLE_PER_PROCESS = 0.05
 """Seconds between memory samples per process of the run, at least 0.25 s: reading a process's
 memory map costs CPU that the run needs."""
+
+
+def launch_sampled(prepared, out: Path, run_id: str, per_process: int,
+                   startup_timeout: float) -> tuple[LaunchResult, dict[str, tuple[float, float]], int]:
+    """``launch`` ``prepared`` as processes of ``per_process`` agents (``dmpc run --agents-per-process``)
+    into the run folder ``out`` as run ``run_id``, each process waiting at most ``startup_timeout``
+    seconds to start, while the processes' memory is sampled.
+
+    Returns
+    -------
+    (result, peak, processes)
+        ``launch``'s result, the peak (RSS, PSS) in MB per role (:func:`~dmpc.bench.common.sample_memory`)
+        and the number of agent processes.
+    """
+    hosts = group_agents(prepared.names, per_process)
+    peak: dict[str, tuple[float, float]] = {}
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(max(0.25, SAMPLE_PER_PROCESS * (len(hosts) + 1))):
+            sample_memory(out, peak)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    try:
+        result = launch(prepared, out, run_id, startup_timeout=startup_timeout, show_progress=False,
+                        topology=default_topology(len(hosts)), agents_per_process=per_process)
+    finally:
+        done.set()
+        sampler.join()
+    return result, peak, len(hosts)
 
 
 def scale_row(M: int, per_process: int, steps: int, workdir: Path, root: Path = Path("."), central: bool = True,
@@ -52,22 +83,8 @@ def scale_row(M: int, per_process: int, steps: int, workdir: Path, root: Path = 
            "topology": default_topology(len(hosts)), "steps": steps, "design_s": design_s,
            "calibration_ms": calibration_ms(3)}
     out = Path(workdir) / f"scale-M{M}-K{per_process}"
-    peak: dict[str, tuple[float, float]] = {}
-    done = threading.Event()
-
-    def sample() -> None:
-        while not done.wait(max(0.25, SAMPLE_PER_PROCESS * (len(hosts) + 1))):
-            sample_memory(out, peak)
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
     started = time.monotonic()
-    try:
-        result = launch(prepared, out, f"scale-{M}-{secrets.token_hex(4)}", startup_timeout=startup_timeout,
-                        show_progress=False, topology=row["topology"], agents_per_process=per_process)
-    finally:
-        done.set()
-        sampler.join()
+    result, peak, _ = launch_sampled(prepared, out, f"scale-{M}-{secrets.token_hex(4)}", per_process, startup_timeout)
     row["wall_s"] = time.monotonic() - started
     if result.code != 0 or not (out / TRAJECTORY).is_file():
         return {**row, "completed": False, "reason": result.message[-600:]}

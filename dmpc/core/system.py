@@ -214,6 +214,12 @@ class Subsystem:
         """u_op, shape (m_i,): the operating point's inputs in the plant's units (zeros without one)."""
         return np.zeros(self.m) if self.u_op is None else np.asarray(self.u_op, dtype=float)
 
+    @property
+    def operating_output(self) -> np.ndarray:
+        """C_i x_op, shape (p_i,): the operating point's outputs in the plant's units (zeros without one)."""
+        y: np.ndarray = self.output_matrix @ self.state_offset
+        return y
+
 
 @dataclass(frozen=True)
 class Coupling:

@@ -38,7 +38,7 @@ class PlantUnits:
 
     def __init__(self, system: CoupledSystem) -> None:
         x, u = system.state_offset, system.input_offset
-        y = np.concatenate([s.output_matrix @ s.state_offset for s in system.subsystems])
+        y = np.concatenate([s.operating_output for s in system.subsystems])
         self.offsets: dict[str, np.ndarray] = {
             **{key: x for key in STATE_KEYS}, **{key: u for key in INPUT_KEYS}, **{key: y for key in OUTPUT_KEYS}}
         for s in system.subsystems:

@@ -62,7 +62,7 @@ def components(system: CoupledSystem, labels: dict | None = None, outputs: bool 
         for i, sub in enumerate(system.subsystems):
             named = labels.get("output", {}).get(sub.name)
             start = system.ys(i).start
-            at = sub.output_matrix @ sub.state_offset
+            at = sub.operating_output
             for c in range(sub.p):
                 out.append(Component(sub.name, named[c] if named else f"y{c + 1}", "y", start + c,
                                      float(at[c]) if shifted else None))
