@@ -20,6 +20,7 @@ from dmpc.records.session import RunRecorder
 from dmpc.runtime.inprocess import simulate
 from dmpc.scenario import load_scenario
 from dmpc.setup import prepare
+from tests.helpers.cli import call, one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "outputs"
@@ -108,3 +109,15 @@ def test_the_wire_leaves_y_out_when_empty_and_refuses_a_subsystem_in_both():
         decode(encode(both))
     only = State(run=RUN, k=3, sender="plant", x={}, y={"a": np.ones(1)})
     assert decode(encode(only)).y["a"].tolist() == [1.0]
+
+
+@pytest.mark.parametrize(("argv", "words"), [
+    (["plant", "scenarios/paper.yaml", "--coordinator", "external", "--outputs", "--run-id", "x"],
+     "--outputs: the scenario has no 'estimation'"),
+    (["plant", "scenarios/paper.yaml", "--outputs", "--out", "OUT"], "--outputs: only with --coordinator external"),
+])
+def test_outputs_from_dmpc_plant_need_estimation_and_an_outside_coordinator(monkeypatch, capsys, tmp_path, argv,
+                                                                           words):
+    argv = [str(tmp_path / "run") if a == "OUT" else a for a in argv]
+    code, _, err = call(monkeypatch, capsys, *argv)
+    assert code == 2 and words in one_error_line(err), err
